@@ -1,0 +1,194 @@
+"""End-to-end CLI: the shipped sample, stats/compare, exports, and bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scenes import box_scene, write_pcd, yaw_quat
+
+from voxtool.cli import SAMPLE_DIR, main
+from voxtool.io.bt import read_bt
+from voxtool.keys import expand_leaves
+
+
+def run(*args):
+    result = CliRunner().invoke(main, [str(a) for a in args])
+    return result.exit_code, result.output
+
+
+@pytest.fixture(scope="module")
+def sample_map(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sample") / "map.vxm"
+    code, text = run("build", "--sample", "-o", out, "--json", "--no-progress")
+    assert code == 0, text
+    return out, json.loads(text)
+
+
+def test_sample_build_equals_real_octomap_reference(sample_map):
+    out, stats = sample_map
+    ref = read_bt(SAMPLE_DIR / "reference_octomap_res0.2.bt")  # written by OctoMap C++ (pyoctomap)
+    code, text = run("export", out, "-o", out.with_suffix(".bt"))
+    assert code == 0, text
+    ours = read_bt(out.with_suffix(".bt"))
+    for occupied in (True, False):
+        a = expand_leaves(ref.codes[ref.occupied == occupied], ref.depths[ref.occupied == occupied])
+        b = expand_leaves(ours.codes[ours.occupied == occupied], ours.depths[ours.occupied == occupied])
+        assert np.array_equal(np.sort(a), np.sort(b))
+    assert stats["occupied_voxels"] == int((ref.occupied * (1 << (3 * (16 - ref.depths.astype(np.int64))))).sum())
+    assert stats["scans"] == 5 and stats["points"] > 40000
+    for key in ("raycast", "update", "total", "jit"):
+        assert stats["timings_s"][key] >= 0
+    assert stats["scan_latency_ms"]["p95"] >= stats["scan_latency_ms"]["p50"] > 0
+
+
+def test_stats_json_matches_build_and_compare_detects_drift(sample_map, tmp_path):
+    out, built = sample_map
+    code, text = run("stats", out, "--json")
+    assert code == 0
+    stats = json.loads(text)
+    for key in ("occupied_voxels", "free_voxels", "leaf_nodes", "inner_nodes", "occupied_bbox", "scans", "points"):
+        assert stats[key] == built[key]
+    base = tmp_path / "base.json"
+    base.write_text(json.dumps(stats))
+    assert run("stats", out, "--compare", base)[0] == 0
+    stats["occupied_voxels"] = int(stats["occupied_voxels"] * 1.05)
+    base.write_text(json.dumps(stats))
+    code, text = run("stats", out, "--compare", base, "--tolerance", "0.01")
+    assert code == 6 and "occupied_voxels" in text and "drifted" in text
+    assert run("stats", out, "--compare", base, "--tolerance", "0.1")[0] == 0
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".pcd"])
+def test_cloud_exports_open_in_open3d(sample_map, tmp_path, suffix):
+    import open3d as o3d
+
+    out, stats = sample_map
+    path = tmp_path / f"occ{suffix}"
+    assert run("export", out, "-o", path)[0] == 0
+    cloud = o3d.io.read_point_cloud(str(path))
+    pts = np.asarray(cloud.points)
+    assert len(pts) == stats["occupied_voxels"]
+    assert np.allclose(pts.min(axis=0) - 0.1, stats["occupied_bbox"]["min"], atol=1e-4)  # centres vs corners
+    free_path = tmp_path / f"all{suffix}"
+    assert run("export", out, "-o", free_path, "--free")[0] == 0
+    both = o3d.io.read_point_cloud(str(free_path))
+    assert len(both.points) == stats["occupied_voxels"] + stats["free_voxels"] and both.has_colors()
+
+
+def test_png_export_is_a_valid_picture(sample_map, tmp_path):
+    import zlib
+
+    out, _ = sample_map
+    path = tmp_path / "top.png"
+    assert run("export", out, "-o", path)[0] == 0
+    blob = path.read_bytes()
+    assert blob[:8] == b"\x89PNG\r\n\x1a\n"
+    w, h = int.from_bytes(blob[16:20], "big"), int.from_bytes(blob[20:24], "big")
+    idat_len = int.from_bytes(blob[33:37], "big")
+    raw = zlib.decompress(blob[41 : 41 + idat_len])
+    img = np.frombuffer(raw, np.uint8).reshape(h, 1 + 3 * w)[:, 1:].reshape(h, w, 3)
+    colours = {tuple(c) for c in img.reshape(-1, 3)[:: max(1, w * h // 20000)]}
+    assert (170, 210, 170) in colours and (40, 40, 48) in colours  # free and unknown both shown
+    assert len(colours) > 3  # occupied cells coloured by height
+
+
+def test_help_is_instant_and_compiles_nothing():
+    code = "import sys, voxtool.cli; sys.argv=['voxtool','--help']\ntry:\n    voxtool.cli.main()\nexcept SystemExit: pass\nprint(sorted(m for m in sys.modules if m.startswith(('numba','open3d'))))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().endswith("[]")
+    assert "build" in out and "export" in out and "stats" in out
+
+
+def write_scans(d: Path, n=2):
+    for i, (pts, o, yaw) in enumerate(box_scene(n, 100, seed=4)):
+        write_pcd(d / f"{i}.pcd", pts, (*o, *yaw_quat(yaw)))
+
+
+BAD_CASES = {
+    "missing source": (lambda d: d / "nope", 3, "nope: no such file or directory"),
+    "truncated pcd": (lambda d: _truncate(d / "0.pcd", 100), 3, "PCD binary body has"),
+    "pcd without DATA": (lambda d: _rewrite(d / "0.pcd", b"DATA binary\n", b"DATUM binary\n"), 3, "PCD header has no DATA line"),
+    "pcd bad viewpoint": (lambda d: _rewrite(d / "0.pcd", b"VIEWPOINT ", b"VIEWPOINT 1 "), 3, "VIEWPOINT needs 7 finite numbers"),
+    "point outside key range": (lambda d: _far_point(d), 4, "outside the octree key range"),
+    "empty directory": (lambda d: _empty(d), 3, "directory must hold .pcd or .ply scans"),
+    "pose rows": (lambda d: _poses(d, 1), 3, "pose file has 1 poses for 2 scans"),
+}
+
+
+def _truncate(p: Path, n: int) -> Path:
+    p.write_bytes(p.read_bytes()[:-n])
+    return p.parent
+
+
+def _rewrite(p: Path, old: bytes, new: bytes) -> Path:
+    p.write_bytes(p.read_bytes().replace(old, new, 1))
+    return p.parent
+
+
+def _far_point(d: Path) -> Path:
+    write_pcd(d / "0.pcd", np.array([[9000.0, 0, 0]], dtype=np.float32))
+    return d
+
+
+def _empty(d: Path) -> Path:
+    for p in d.iterdir():
+        p.unlink()
+    return d
+
+
+def _poses(d: Path, n: int) -> Path:
+    (d / "p.txt").write_text("0 0 0 0 0 0 0 1\n" * n)
+    return d
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CASES))
+def test_bad_input_one_line_error_exit_code_no_output(tmp_path, case):
+    make, exit_code, message = BAD_CASES[case]
+    src_dir = tmp_path / "scans"
+    src_dir.mkdir()
+    write_scans(src_dir)
+    source = make(src_dir)
+    out = tmp_path / "map.vxm"
+    out.write_bytes(b"the user's previous map")
+    args = ["build", source, "-o", out]
+    if case == "pose rows":
+        args += ["--poses", src_dir / "p.txt"]
+    proc = subprocess.run([sys.executable, "-m", "voxtool.cli", *map(str, args)], capture_output=True, text=True,
+                          env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    assert proc.returncode == exit_code, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("voxtool: error: ") and message in lines[0], proc.stderr
+    assert out.read_bytes() == b"the user's previous map"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".voxtool-tmp-")]
+
+
+def test_bad_map_files_fail_cleanly(tmp_path, sample_map):
+    out, _ = sample_map
+    blob = out.read_bytes()
+    cases = {
+        "trunc.vxm": (blob[: len(blob) // 2], "CRC mismatch"),
+        "flip.vxm": (blob[:100] + bytes([blob[100] ^ 1]) + blob[101:], "CRC mismatch"),
+        "text.vxm": (b"hello", "too short"),
+        "future.vxm": (blob[:8] + (9).to_bytes(2, "little") + blob[10:], "version 9 is newer"),
+    }
+    for name, (data, message) in cases.items():
+        path = tmp_path / name
+        path.write_bytes(data)
+        code, text = run("stats", path)
+        assert code == 5 and message in text, (name, text)
+        code, text = run("export", path, "-o", tmp_path / f"{name}.bt")
+        assert code == 5 and not (tmp_path / f"{name}.bt").exists()
+
+
+def test_wrong_output_suffixes_are_refused(tmp_path, sample_map):
+    out, _ = sample_map
+    assert run("export", out, "-o", tmp_path / "x.obj")[0] == 2
+    assert run("build", "--sample", "-o", tmp_path / "x.bt")[0] == 2
+    assert run("build")[0] == 2

@@ -1,0 +1,43 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from voxtool.errors import KeyRangeError
+from voxtool.keys import coords_to_keys, expand_leaves, keys_to_coords, morton_decode, morton_encode
+
+
+def brute_morton(x: int, y: int, z: int) -> int:
+    code = 0
+    for b in range(16):
+        code |= ((x >> b) & 1) << (3 * b) | ((y >> b) & 1) << (3 * b + 1) | ((z >> b) & 1) << (3 * b + 2)
+    return code
+
+
+@given(st.lists(st.tuples(*[st.integers(0, 65535)] * 3), min_size=1, max_size=50))
+def test_morton_matches_bit_interleaving_and_round_trips(keys):
+    arr = np.array(keys, dtype=np.int64)
+    codes = morton_encode(arr)
+    assert [int(c) for c in codes] == [brute_morton(*k) for k in keys]
+    assert (morton_decode(codes) == arr).all()
+
+
+def test_coords_to_keys_matches_octomap_floor_rule():
+    pts = np.array([[0.0, -0.0, 0.19999], [-0.0001, 0.2, -0.2]], dtype=np.float32)
+    keys = coords_to_keys(pts, 0.2)
+    # float32(-0.2) = -0.2000000030 lies just below -0.2: floor(-1.00000001) = -2, as in OctoMap
+    assert keys.tolist() == [[32768, 32768, 32768], [32767, 32769, 32766]]
+    assert np.allclose(keys_to_coords(keys[:1], 0.2), [[0.1, 0.1, 0.1]])
+
+
+def test_out_of_range_point_is_an_error_naming_point_and_limit():
+    pts = np.array([[0, 0, 0], [7000.0, 0, 0]], dtype=np.float32)
+    with pytest.raises(KeyRangeError, match=r"point 1 at \(7000.0, 0.0, 0.0\).*6553.6 m"):
+        coords_to_keys(pts, 0.2)
+
+
+def test_expand_leaves_covers_contiguous_morton_ranges():
+    codes = expand_leaves(np.array([0, 64]), np.array([15, 16], dtype=np.uint8))
+    assert codes.tolist() == list(range(8)) + [64]

@@ -1,0 +1,183 @@
+"""Every source form of the same scans gives the same map; readers handle real PCL files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from ros2_writer import write_graph, write_mcap
+from scenes import box_scene, write_pcd, yaw_quat
+
+from voxtool.api import build_map
+from voxtool.config import MapParams, SensorModel
+from voxtool.errors import SourceError
+from voxtool.geometry import quat_to_matrix
+from voxtool.sources import SourceOptions, open_source
+from voxtool.sources.pcd import read_pcd
+from voxtool.sources.poses import read_poses
+
+
+@pytest.fixture(scope="module")
+def scans():
+    return [(pts, origin, yaw_quat(yaw)) for pts, origin, yaw in box_scene(4, 300, seed=21)]
+
+
+def build_leaves(src, **opts):
+    from voxtool.maps import make_backend
+    from voxtool.pipeline import build
+
+    stream = open_source(src, SourceOptions(**opts))
+    m = make_backend("octree", MapParams(resolution=0.2), SensorModel())
+    report = build(stream, m, progress=False)
+    lv = m.leaves()
+    return (lv.codes.tolist(), lv.depths.tolist(), lv.values.tolist()), report
+
+
+def write_tum(path, scans, indexed=False):
+    rows = []
+    for i, (_, o, q) in enumerate(scans):
+        o, q = [float(v) for v in o], [float(v) for v in q]
+        prefix = f"{i} " if indexed else ""
+        rows.append(f"{prefix}{i * 0.1:.3f} {o[0]!r} {o[1]!r} {o[2]!r} {q[1]!r} {q[2]!r} {q[3]!r} {q[0]!r}")
+    path.write_text("# t x y z qx qy qz qw\n" + "\n".join(rows) + "\n")
+
+
+def write_ply(path, pts, fmt="binary_little_endian"):
+    pts = np.asarray(pts, dtype="<f4")
+    head = f"ply\nformat {fmt} 1.0\nelement vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    if fmt == "ascii":
+        body = "".join(f"{p[0]!r} {p[1]!r} {p[2]!r}\n" for p in pts.astype(float).tolist()).encode()
+    else:
+        body = pts.astype(">f4" if "big" in fmt else "<f4").tobytes()
+    path.write_bytes(head.encode() + body)
+
+
+@pytest.fixture(scope="module")
+def pcd_map(tmp_path_factory, scans):
+    d = tmp_path_factory.mktemp("pcd")
+    for i, (pts, o, q) in enumerate(scans):
+        write_pcd(d / f"{i}.pcd", pts, (*o, *q))
+    return build_leaves(d)[0]
+
+
+@pytest.mark.parametrize("kind", ["ascii", "binary_compressed"])
+def test_pcd_data_kinds_give_the_same_map(tmp_path, scans, pcd_map, kind):
+    for i, (pts, o, q) in enumerate(scans):
+        write_pcd(tmp_path / f"{i:03d}.pcd", pts, (*o, *q), kind=kind)
+    assert build_leaves(tmp_path)[0] == pcd_map
+
+
+def test_pcd_files_are_taken_in_numeric_order(tmp_path, scans, pcd_map):
+    # names 9.pcd, 10.pcd sort wrongly as strings; scan order matters for the log-odds
+    for i, (pts, o, q) in enumerate(scans):
+        write_pcd(tmp_path / f"{i + 8}.pcd", pts, (*o, *q))
+    assert build_leaves(tmp_path)[0] == pcd_map
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
+def test_ply_with_tum_poses_gives_the_same_map(tmp_path, scans, pcd_map, fmt):
+    for i, (pts, _, _) in enumerate(scans):
+        write_ply(tmp_path / f"{i}.ply", pts, fmt)
+    write_tum(tmp_path / "poses.tum", scans)
+    assert build_leaves(tmp_path, poses=str(tmp_path / "poses.tum"))[0] == pcd_map
+
+
+def test_kitti_poses_equal_tum_poses(tmp_path, scans):
+    rows = []
+    for _, o, q in scans:
+        m = np.hstack([quat_to_matrix(*q), np.asarray(o)[:, None]])
+        rows.append(" ".join(repr(float(v)) for v in m.ravel()))
+    (tmp_path / "k.txt").write_text("\n".join(rows) + "\n")
+    write_tum(tmp_path / "t.txt", scans, indexed=True)
+    kitti, tum = read_poses(tmp_path / "k.txt"), read_poses(tmp_path / "t.txt")
+    for (_, a), (_, b) in zip(kitti, tum):
+        assert np.allclose(a.rotation, b.rotation, atol=1e-12) and np.array_equal(a.translation, b.translation)
+
+
+@pytest.mark.parametrize("mode", ["tf", "odom"])
+def test_mcap_gives_the_same_map(tmp_path, scans, pcd_map, mode):
+    path = tmp_path / "s.mcap"
+    write_mcap(path, scans, mode)
+    leaves, report = build_leaves(path, pose_topic="/odom" if mode == "odom" else None)
+    assert leaves == pcd_map
+    assert report.scans == len(scans) and report.first_stamp_ns == 1_000_000_000
+
+
+def test_graph_gives_the_same_map(tmp_path, scans, pcd_map):
+    path = tmp_path / "s.graph"
+    write_graph(path, scans)
+    assert build_leaves(path)[0] == pcd_map
+
+
+def test_slicing_start_stop_every(tmp_path, scans):
+    for i, (pts, o, q) in enumerate(scans):
+        write_pcd(tmp_path / f"{i}.pcd", pts, (*o, *q))
+    stream = open_source(tmp_path, SourceOptions(start=1, stop=4, every=2))
+    assert stream.count == 2
+    assert [s.index for s in stream.scans] == [1, 3]
+
+
+def test_nan_points_are_dropped_and_counted(tmp_path, scans):
+    pts, o, q = scans[0]
+    bad = pts.copy()
+    bad[:5] = np.nan
+    bad[5] = np.inf
+    write_pcd(tmp_path / "0.pcd", bad, (*o, *q))
+    r = build_map(tmp_path, SourceOptions(), MapParams(0.2), SensorModel(), progress=False)
+    assert r["points"] == len(pts) and r["points_dropped"] == 6 and r["points_dropped_nonfinite"] == 6
+
+
+def test_min_range_drops_near_points(tmp_path, scans):
+    pts, o, q = scans[0]
+    write_pcd(tmp_path / "0.pcd", pts, (*o, *q))
+    near = int((np.linalg.norm(pts.astype(np.float64), axis=1) < 1.0).sum())
+    assert near > 0
+    r = build_map(tmp_path, SourceOptions(min_range=1.0), MapParams(0.2, min_range=1.0), SensorModel(), progress=False)
+    assert r["points_dropped_min_range"] == near
+
+
+def test_no_viewpoint_treats_points_as_world_frame(tmp_path):
+    pts = np.array([[1.0, 0.0, 0.0]], dtype=np.float32)
+    write_pcd(tmp_path / "0.pcd", pts, (0, 0, 0, 0, 1, 0, 0))  # OpenNI's 180-degree VIEWPOINT
+    flipped = next(open_source(tmp_path).scans).points
+    kept = next(open_source(tmp_path, SourceOptions(no_viewpoint=True)).scans).points
+    assert np.array_equal(kept, pts)
+    assert np.allclose(flipped, [[1.0, 0.0, 0.0]])  # x unchanged by a rotation about x
+    pts2 = np.array([[0.0, 1.0, 0.0]], dtype=np.float32)
+    write_pcd(tmp_path / "0.pcd", pts2, (0, 0, 0, 0, 1, 0, 0))
+    assert np.allclose(next(open_source(tmp_path).scans).points, [[0.0, -1.0, 0.0]])
+
+
+def test_pose_file_row_count_must_match(tmp_path, scans):
+    for i, (pts, o, q) in enumerate(scans):
+        write_pcd(tmp_path / f"{i}.pcd", pts, (*o, *q))
+    write_tum(tmp_path / "p.txt", scans[:2])
+    with pytest.raises(SourceError, match=r"p.txt: pose file has 2 poses for 4 scans"):
+        open_source(tmp_path, SourceOptions(poses=str(tmp_path / "p.txt")))
+
+
+def test_non_unit_quaternion_is_refused(tmp_path):
+    (tmp_path / "p.txt").write_text("0 1 2 3 0 0 0 2\n")
+    with pytest.raises(SourceError, match=r"p.txt:1: quaternion has norm 2.000000"):
+        read_poses(tmp_path / "p.txt")
+
+
+def test_real_pcl_fixtures_decode(shared_data):
+    fixtures = shared_data / "pcl_format_fixtures"
+    finite = {"frame_20121214T142255.814212.pcd": 271575, "table_scene_mug_stereo_textured.pcd": 209280,
+              "cturtle.pcd": 167198, "bun0.pcd": 397, "colored_cloud.pcd": 1000}
+    for name, n in finite.items():
+        path = next(fixtures.rglob(name))
+        cloud = read_pcd(path)
+        assert int(np.isfinite(cloud.xyz).all(axis=1).sum()) == n
+    assert read_pcd(fixtures / "pcl_logo.pcd").viewpoint == (0.0, 0.0, -2.0, 0.0, 1.0, 0.0, 0.0)
+    assert not read_pcd(fixtures / "nhood_test.pcd").has_viewpoint
+
+
+def test_rosbag2_written_mcap_decodes(shared_data):
+    from voxtool.sources.mcap_ros2 import McapCloudSource
+
+    src = McapCloudSource(shared_data / "mcap_format_fixtures" / "truck_icp_test_default_conf_0.mcap",
+                          "cloud_2", "test", None)
+    assert src.count == 1
+    points, pose, stamp, _ = next(src.scans())
+    assert points.shape == (34894, 3) and pose.is_identity() and stamp == 0

@@ -1,0 +1,142 @@
+"""Map snapshots (.vxm): versioned, self-describing, lossless, CRC-checked, written atomically.
+
+Byte layout (all integers little endian), specified in formats/snapshot.md:
+  0   8  magic  b"\\x89VXM\\r\\n\\x1a\\n"
+  8   2  uint16 format version (1)
+  10  2  uint16 flags (0)
+  12  4  uint32 header length H (<= 1 MiB)
+  16  H  header: UTF-8 JSON object (backend, resolution, sensor model, source, version, arrays)
+  ..     array payloads, in the order of header["arrays"], each zstd-compressed
+  end 4  uint32 CRC-32 of every byte before it
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zstandard
+
+from voxtool.atomic import atomic_writer
+from voxtool.errors import FormatError
+
+MAGIC = b"\x89VXM\r\n\x1a\n"
+VERSION = 1
+MAX_HEADER = 1 << 20
+MAX_ARRAY_BYTES = 1 << 34  # 16 GiB: a declared size beyond this is refused before allocating
+DTYPES = {"int64": "<i8", "uint8": "u1", "float32": "<f4", "int32": "<i4", "uint16": "<u2", "uint32": "<u4",
+          "float64": "<f8", "int16": "<i2", "uint64": "<u8"}
+_FIXED = struct.Struct("<8sHHI")
+
+
+@dataclass
+class Snapshot:
+    header: dict
+    arrays: dict[str, np.ndarray]
+
+
+CODECS = ("zstd", "raw")
+
+
+def snapshot_bytes(header: dict, arrays: dict[str, np.ndarray], codec: str = "zstd", level: int = 3) -> bytes:
+    """Encode a snapshot. `header` must be JSON-serialisable; 'arrays' is filled in here.
+    codec "raw" stores arrays uncompressed (byte-exact golden vectors across zstd versions)."""
+    compressor = zstandard.ZstdCompressor(level=level)
+    payloads = []
+    table = []
+    offset = 0
+    for name, array in arrays.items():
+        dtype_name = np.dtype(array.dtype).name
+        if dtype_name not in DTYPES:
+            raise ValueError(f"array {name}: dtype {dtype_name} not storable")
+        raw = np.ascontiguousarray(array, dtype=DTYPES[dtype_name]).tobytes()
+        stored = compressor.compress(raw) if codec == "zstd" else raw
+        table.append({"name": name, "dtype": dtype_name, "shape": list(array.shape), "codec": codec,
+                      "offset": offset, "stored_bytes": len(stored), "raw_bytes": len(raw),
+                      "crc32": zlib.crc32(stored)})
+        payloads.append(stored)
+        offset += len(stored)
+    full = dict(header)
+    full["arrays"] = table
+    head = json.dumps(full, sort_keys=True, separators=(",", ":")).encode()
+    if len(head) > MAX_HEADER:
+        raise ValueError("snapshot header too large")
+    body = _FIXED.pack(MAGIC, VERSION, 0, len(head)) + head + b"".join(payloads)
+    return body + struct.pack("<I", zlib.crc32(body))
+
+
+def write_snapshot(path: str | Path, header: dict, arrays: dict[str, np.ndarray]) -> None:
+    with atomic_writer(path) as handle:
+        handle.write(snapshot_bytes(header, arrays))
+
+
+def parse_snapshot(blob: bytes, where: str = "snapshot") -> Snapshot:
+    """Decode snapshot bytes, checking magic, version, every length and every CRC first."""
+    if len(blob) < _FIXED.size + 4:
+        raise FormatError(f"{where}: file of {len(blob)} bytes is too short to be a snapshot")
+    magic, version, _flags, head_len = _FIXED.unpack_from(blob, 0)
+    if magic != MAGIC:
+        raise FormatError(f"{where}: not a voxtool snapshot (bad magic)")
+    if version > VERSION:
+        raise FormatError(f"{where}: snapshot format version {version} is newer than this voxtool reads ({VERSION})")
+    if version < 1:
+        raise FormatError(f"{where}: snapshot format version {version} is invalid")
+    if head_len > MAX_HEADER or _FIXED.size + head_len + 4 > len(blob):
+        raise FormatError(f"{where}: header length {head_len} exceeds the file ({len(blob)} bytes) or the 1 MiB limit")
+    (crc,) = struct.unpack_from("<I", blob, len(blob) - 4)
+    if zlib.crc32(memoryview(blob)[:-4]) != crc:
+        raise FormatError(f"{where}: CRC mismatch (file is corrupt or truncated)")
+    try:
+        header = json.loads(bytes(blob[_FIXED.size : _FIXED.size + head_len]).decode())
+    except (UnicodeDecodeError, ValueError) as err:
+        raise FormatError(f"{where}: header is not valid JSON ({err})") from err
+    if not isinstance(header, dict) or not isinstance(header.get("arrays"), list):
+        raise FormatError(f"{where}: header lacks the 'arrays' table")
+    payload_start = _FIXED.size + head_len
+    payload_end = len(blob) - 4
+    arrays: dict[str, np.ndarray] = {}
+    decompressor = zstandard.ZstdDecompressor()
+    for entry in header["arrays"]:
+        try:
+            name, dtype_name, shape = str(entry["name"]), str(entry["dtype"]), [int(s) for s in entry["shape"]]
+            offset, stored, raw = int(entry["offset"]), int(entry["stored_bytes"]), int(entry["raw_bytes"])
+            want_crc = int(entry["crc32"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise FormatError(f"{where}: array table entry is malformed ({err})") from err
+        codec = entry.get("codec")
+        if dtype_name not in DTYPES or codec not in CODECS:
+            raise FormatError(f"{where}: array '{name}' has unknown dtype/codec {dtype_name}/{entry.get('codec')}")
+        itemsize = np.dtype(DTYPES[dtype_name]).itemsize
+        count = int(np.prod(shape, dtype=np.int64)) if shape else 1
+        if min(shape + [0]) < 0 or raw != count * itemsize or raw > MAX_ARRAY_BYTES:
+            raise FormatError(f"{where}: array '{name}' declares {raw} bytes for shape {shape} ({dtype_name})")
+        lo = payload_start + offset
+        if offset < 0 or stored < 0 or lo + stored > payload_end:
+            raise FormatError(f"{where}: array '{name}' lies beyond the end of the file")
+        chunk = blob[lo : lo + stored]
+        if zlib.crc32(chunk) != want_crc:
+            raise FormatError(f"{where}: array '{name}' CRC mismatch")
+        try:
+            if codec == "raw":
+                data = bytes(chunk)
+            else:
+                data = decompressor.decompress(chunk, max_output_size=raw) if raw else b""
+        except zstandard.ZstdError as err:
+            raise FormatError(f"{where}: array '{name}' does not decompress ({err})") from err
+        if len(data) != raw:
+            raise FormatError(f"{where}: array '{name}' decompressed to {len(data)} bytes, declared {raw}")
+        arrays[name] = np.frombuffer(data, dtype=DTYPES[dtype_name]).reshape(shape).copy()
+    return Snapshot(header, arrays)
+
+
+def read_snapshot(path: str | Path) -> Snapshot:
+    path = Path(path)
+    try:
+        blob = path.read_bytes()
+    except OSError as err:
+        raise FormatError(f"{path}: cannot read: {err.strerror}") from err
+    return parse_snapshot(blob, str(path))

@@ -1,0 +1,86 @@
+"""OctoMap keys and Morton codes.
+
+A key is three uint16 indices, `key = floor(coord / resolution) + 32768` (OctoMap 1.10, depth 16).
+A Morton code interleaves the key bits as `... z1 y1 x1 z0 y0 x0` into 48 bits of an int64, so the
+triplet at level L (bits 3L..3L+2) is exactly OctoMap's child index (x + 2y + 4z) at depth 15 - L.
+Sorting Morton codes therefore sorts voxels in the octree's depth-first order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from voxtool.errors import KeyRangeError
+
+TREE_DEPTH = 16
+TREE_MAX_VAL = 32768
+KEY_LIMIT = 2 * TREE_MAX_VAL  # keys lie in [0, 65536)
+
+
+def _spread(v: np.ndarray) -> np.ndarray:
+    v = v.astype(np.int64) & 0xFFFF
+    v = (v | (v << 16)) & 0x0000FF0000FF
+    v = (v | (v << 8)) & 0x00F00F00F00F
+    v = (v | (v << 4)) & 0x0C30C30C30C3
+    v = (v | (v << 2)) & 0x249249249249
+    return v
+
+
+def _compact(v: np.ndarray) -> np.ndarray:
+    v = v & 0x249249249249
+    v = (v | (v >> 2)) & 0x0C30C30C30C3
+    v = (v | (v >> 4)) & 0x00F00F00F00F
+    v = (v | (v >> 8)) & 0x0000FF0000FF
+    v = (v | (v >> 16)) & 0xFFFF
+    return v
+
+
+def morton_encode(keys: np.ndarray) -> np.ndarray:
+    """(N, 3) integer keys -> (N,) int64 Morton codes."""
+    keys = np.asarray(keys)
+    return _spread(keys[:, 0]) | (_spread(keys[:, 1]) << 1) | (_spread(keys[:, 2]) << 2)
+
+
+def morton_decode(codes: np.ndarray) -> np.ndarray:
+    """(N,) int64 Morton codes -> (N, 3) uint16 keys."""
+    codes = np.asarray(codes, dtype=np.int64)
+    out = np.empty((codes.shape[0], 3), dtype=np.uint16)
+    for axis in range(3):
+        out[:, axis] = _compact(codes >> axis)
+    return out
+
+
+def coords_to_keys(points: np.ndarray, resolution: float, *, what: str = "point") -> np.ndarray:
+    """World coordinates -> uint16 keys, exactly as OctoMap's coordToKey (float64 floor).
+
+    Raises KeyRangeError naming the first offending point instead of wrapping silently.
+    """
+    points = np.asarray(points)
+    scaled = np.floor((1.0 / resolution) * points.astype(np.float64)) + TREE_MAX_VAL
+    bad = ~((scaled >= 0) & (scaled < KEY_LIMIT))
+    if bad.any():
+        row = int(np.argwhere(bad.any(axis=1))[0, 0])
+        raise KeyRangeError(
+            f"{what} {row} at {tuple(float(c) for c in points[row])} lies outside the octree key range "
+            f"(|coordinate| < {TREE_MAX_VAL * resolution:g} m at resolution {resolution:g})"
+        )
+    return scaled.astype(np.uint16)
+
+
+def keys_to_coords(keys: np.ndarray, resolution: float) -> np.ndarray:
+    """Voxel centres of uint16 keys (OctoMap's keyToCoord at full depth)."""
+    return ((np.asarray(keys).astype(np.float64) - TREE_MAX_VAL) + 0.5) * resolution
+
+
+def leaf_span(depth: np.ndarray) -> np.ndarray:
+    """Number of finest-level voxels covered by a leaf at each depth (8^(16-depth))."""
+    return np.left_shift(np.int64(1), 3 * (TREE_DEPTH - np.asarray(depth, dtype=np.int64)))
+
+
+def expand_leaves(codes: np.ndarray, depths: np.ndarray) -> np.ndarray:
+    """Morton codes of every finest-level voxel covered by leaves (code = first voxel, depth)."""
+    spans = leaf_span(depths)
+    total = int(spans.sum())
+    starts = np.repeat(np.asarray(codes, dtype=np.int64), spans)
+    offsets = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(spans) - spans, spans)
+    return starts + offsets

@@ -1,0 +1,22 @@
+"""Map backends. BACKENDS is the one registry the CLI and the snapshot loader read."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from voxtool.config import MapParams, SensorModel
+from voxtool.errors import ParameterError
+from voxtool.maps.base import MapBackend
+from voxtool.maps.octree import OctreeMap
+
+BACKENDS: dict[str, Callable[..., MapBackend]] = {
+    "octree": OctreeMap,
+}
+
+
+def make_backend(name: str, params: MapParams, sensor: SensorModel, **options) -> MapBackend:
+    try:
+        factory = BACKENDS[name]
+    except KeyError:
+        raise ParameterError(f"backend '{name}' is not one of {', '.join(sorted(BACKENDS))}") from None
+    return factory(params, sensor, **options)

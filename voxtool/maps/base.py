@@ -1,0 +1,65 @@
+"""The contract every map backend meets, and the leaf table they all share."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from voxtool.config import MapParams, SensorModel
+from voxtool.sources.scan import Scan
+
+
+@dataclass
+class Leaves:
+    """A map as Morton-ordered leaves: first covered voxel's code, depth (16 = one voxel), log-odds."""
+
+    codes: np.ndarray  # int64
+    depths: np.ndarray  # uint8
+    values: np.ndarray  # float32
+
+    def __len__(self) -> int:
+        return int(self.codes.shape[0])
+
+
+@dataclass
+class IntegrateTiming:
+    """Seconds spent in one scan's integration, split by phase."""
+
+    raycast: float = 0.0
+    update: float = 0.0
+    voxel_updates: int = 0
+    ray_steps: int = 0
+
+
+class MapBackend(Protocol):
+    """What the pipeline, the snapshot writer and the exporters need from a backend."""
+
+    name: str
+    params: MapParams
+    sensor: SensorModel
+
+    def warm_up(self) -> None:
+        """Load the compiled kernels (JIT) before timing starts."""
+
+    def integrate(self, scan: Scan) -> IntegrateTiming:
+        """Fold one scan into the map."""
+
+    def query(self, codes: np.ndarray) -> np.ndarray:
+        """Log-odds at finest-level Morton codes; NaN where unknown."""
+
+    def leaves(self) -> Leaves:
+        """All known leaves in Morton order."""
+
+    def node_counts(self) -> tuple[int, int]:
+        """(leaf nodes, inner nodes)."""
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the map's own storage."""
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """Arrays that make the map lossless in a snapshot."""
+
+    def extra_meta(self) -> dict[str, Any]:
+        """Backend parameters to record in a snapshot."""

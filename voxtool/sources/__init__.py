@@ -1,0 +1,180 @@
+"""Scan sources: every supported input turned into a stream of world-frame `Scan`s.
+
+SOURCES maps a kind to its opener; `open_source` picks the kind from the path.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from itertools import islice
+from pathlib import Path
+
+import numpy as np
+
+from voxtool.errors import ParameterError, SourceError
+from voxtool.geometry import Pose
+from voxtool.sources.scan import Scan
+
+
+@dataclass(frozen=True)
+class SourceOptions:
+    poses: str | None = None  # pose file (TUM / indexed TUM / KITTI)
+    no_viewpoint: bool = False  # PCD points are world-frame; only the origin comes from a pose
+    topic: str | None = None
+    world_frame: str = "map"
+    pose_topic: str | None = None
+    start: int = 0
+    stop: int | None = None
+    every: int = 1
+    min_range: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.start < 0 or (self.stop is not None and self.stop < self.start) or self.every < 1:
+            raise ParameterError(f"scan slice start={self.start} stop={self.stop} every={self.every} is invalid")
+
+
+@dataclass
+class ScanStream:
+    """A source opened for reading: how many scans it will yield (if known) and the scans."""
+
+    kind: str
+    path: Path
+    count: int | None
+    scans: Iterator[Scan]
+
+
+def _numeric_key(path: Path) -> tuple:
+    """Sort scan files by the numbers in their names, never as strings of unequal length."""
+    return tuple(int(n) for n in re.findall(r"\d+", path.stem)), path.name
+
+
+def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source: str, raw_bytes: int,
+              options: SourceOptions, world_frame_points: bool = False) -> Scan:
+    """Drop non-finite points, move sensor-frame points to the world, drop those below min range."""
+    finite = np.isfinite(points).all(axis=1)
+    kept = points[finite]
+    world = np.asarray(kept, dtype=np.float32) if world_frame_points else pose.apply(kept)
+    origin = pose.translation.astype(np.float32)
+    dropped_min = 0
+    if options.min_range > 0 and world.shape[0]:
+        d = np.linalg.norm(world.astype(np.float64) - origin.astype(np.float64), axis=1)
+        near = d < options.min_range
+        dropped_min = int(near.sum())
+        world = world[~near]
+    return Scan(
+        points=np.ascontiguousarray(world, dtype=np.float32),
+        origin=origin,
+        index=index,
+        stamp_ns=stamp_ns,
+        source=source,
+        points_read=int(points.shape[0]),
+        dropped_nonfinite=int((~finite).sum()),
+        dropped_min_range=dropped_min,
+        raw_bytes=raw_bytes,
+    )
+
+
+def _pose_rows(options: SourceOptions, n_scans: int) -> list | None:
+    if options.poses is None:
+        return None
+    from voxtool.sources.poses import read_poses
+
+    rows = read_poses(options.poses)
+    if len(rows) != n_scans:
+        raise SourceError(f"{options.poses}: pose file has {len(rows)} poses for {n_scans} scans")
+    return rows
+
+
+def _open_cloud_files(path: Path, options: SourceOptions, suffix: str) -> ScanStream:
+    files = sorted(path.glob(f"*{suffix}"), key=_numeric_key) if path.is_dir() else [path]
+    if not files:
+        raise SourceError(f"{path}: directory holds no {suffix} files")
+    rows = _pose_rows(options, len(files))
+    if suffix == ".ply" and rows is None:
+        raise SourceError(f"{path}: PLY scans need a pose file (--poses)")
+
+    def scans() -> Iterator[Scan]:
+        from voxtool.sources.pcd import read_pcd
+        from voxtool.sources.ply import read_ply
+
+        for i, f in islice(enumerate(files), options.start, options.stop, options.every):
+            stamp = 0
+            if suffix == ".pcd":
+                cloud = read_pcd(f)
+                points = cloud.xyz
+                vp = cloud.viewpoint
+                pose = Pose.from_quat(vp[:3], vp[3], vp[4], vp[5], vp[6])
+            else:
+                points = read_ply(f)
+                pose = Pose.identity()
+            if rows is not None:
+                stamp_s, pose = rows[i]
+                stamp = int(round(stamp_s * 1e9)) if stamp_s is not None else 0
+            if options.no_viewpoint:
+                pose = Pose(np.eye(3), pose.translation)
+            yield make_scan(points, pose, i, stamp, str(f), f.stat().st_size, options, options.no_viewpoint)
+
+    return ScanStream(suffix.lstrip("."), path, len(range(len(files))[options.start:options.stop:options.every]), scans())
+
+
+def _open_pcd(path: Path, options: SourceOptions) -> ScanStream:
+    return _open_cloud_files(path, options, ".pcd")
+
+
+def _open_ply(path: Path, options: SourceOptions) -> ScanStream:
+    return _open_cloud_files(path, options, ".ply")
+
+
+def _open_mcap(path: Path, options: SourceOptions) -> ScanStream:
+    from voxtool.sources.mcap_ros2 import McapCloudSource
+
+    src = McapCloudSource(path, options.topic, options.world_frame, options.pose_topic)
+
+    def scans() -> Iterator[Scan]:
+        for i, (points, pose, stamp, nbytes) in islice(enumerate(src.scans()), options.start, options.stop, options.every):
+            yield make_scan(points, pose, i, stamp, f"{path}#{i}", nbytes, options)
+
+    count = len(range(src.count)[options.start:options.stop:options.every]) if src.count is not None else None
+    return ScanStream("mcap", path, count, scans())
+
+
+def _open_graph(path: Path, options: SourceOptions) -> ScanStream:
+    from voxtool.sources.graph import count_graph_nodes, iter_graph
+
+    n = count_graph_nodes(path)
+
+    def scans() -> Iterator[Scan]:
+        for i, (points, pose, nbytes) in islice(enumerate(iter_graph(path)), options.start, options.stop, options.every):
+            yield make_scan(points, pose, i, 0, f"{path}#{i}", nbytes, options)
+
+    return ScanStream("graph", path, len(range(n)[options.start:options.stop:options.every]), scans())
+
+
+SOURCES: dict[str, Callable[[Path, SourceOptions], ScanStream]] = {
+    "pcd": _open_pcd,
+    "ply": _open_ply,
+    "mcap": _open_mcap,
+    "graph": _open_graph,
+}
+
+
+def detect_kind(path: Path) -> str:
+    if path.is_dir():
+        kinds = {p.suffix.lower() for p in path.iterdir() if p.suffix.lower() in (".pcd", ".ply")}
+        if len(kinds) != 1:
+            raise SourceError(f"{path}: directory must hold .pcd or .ply scans (found {sorted(kinds) or 'neither'})")
+        return kinds.pop().lstrip(".")
+    kind = path.suffix.lower().lstrip(".")
+    if kind not in SOURCES:
+        raise SourceError(f"{path}: unknown source type '{path.suffix}' (known: {', '.join(sorted(SOURCES))}, or a directory)")
+    return kind
+
+
+def open_source(path: str | Path, options: SourceOptions | None = None) -> ScanStream:
+    path = Path(path)
+    options = options or SourceOptions()
+    if not path.exists():
+        raise SourceError(f"{path}: no such file or directory")
+    return SOURCES[detect_kind(path)](path, options)

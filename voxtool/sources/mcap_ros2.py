@@ -1,0 +1,213 @@
+"""ROS 2 MCAP source: sensor_msgs/msg/PointCloud2 with sensor poses from /tf (+ /tf_static) or
+from a nav_msgs/msg/Odometry or geometry_msgs/msg/PoseStamped topic. No ROS install needed."""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from voxtool.errors import SourceError
+from voxtool.geometry import Pose, interpolate_pose
+from voxtool.sources.pcd import MAX_POINTS
+
+CLOUD = "sensor_msgs/msg/PointCloud2"
+TF = "tf2_msgs/msg/TFMessage"
+POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped")
+_PF_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+STAMP_TOLERANCE_NS = 1_000_000  # a cloud this close outside a transform's time range uses its end value
+
+
+def _stamp(header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def _pose_of(translation, rotation) -> Pose:
+    return Pose.from_quat((translation.x, translation.y, translation.z), rotation.w, rotation.x, rotation.y, rotation.z)
+
+
+class StampedPoses:
+    """Time series of one transform, interpolated (linear + slerp) at a query stamp."""
+
+    def __init__(self) -> None:
+        self.stamps: list[int] = []
+        self.poses: list[Pose] = []
+        self.static = False
+
+    def add(self, stamp: int, pose: Pose) -> None:
+        self.stamps.append(stamp)
+        self.poses.append(pose)
+
+    def at(self, stamp: int) -> Pose | None:
+        if self.static:
+            return self.poses[-1]
+        s = self.stamps
+        i = int(np.searchsorted(s, stamp))
+        if i < len(s) and s[i] == stamp:
+            return self.poses[i]
+        if i == 0:
+            return self.poses[0] if s[0] - stamp <= STAMP_TOLERANCE_NS else None
+        if i == len(s):
+            return self.poses[-1] if stamp - s[-1] <= STAMP_TOLERANCE_NS else None
+        return interpolate_pose(stamp, s[i - 1], self.poses[i - 1], s[i], self.poses[i])
+
+
+def decode_pointcloud2(path: Path, msg, index: int) -> np.ndarray:
+    """(N, 3) float32 x, y, z of a PointCloud2, every declared size checked against the data."""
+    where = f"{path}: PointCloud2 message {index}"
+    h, w, step, row_step = int(msg.height), int(msg.width), int(msg.point_step), int(msg.row_step)
+    data = msg.data
+    if h * w > MAX_POINTS:
+        raise SourceError(f"{where} declares {h * w} points (limit {MAX_POINTS})")
+    if w and step * w > row_step:
+        raise SourceError(f"{where}: point_step {step} x width {w} exceeds row_step {row_step}")
+    if len(data) < row_step * h:
+        raise SourceError(f"{where}: data has {len(data)} bytes, row_step x height needs {row_step * h}")
+    fields = {f.name: f for f in msg.fields}
+    order = ">" if msg.is_bigendian else "<"
+    cols = []
+    for axis in "xyz":
+        f = fields.get(axis)
+        if f is None:
+            raise SourceError(f"{where} has no '{axis}' field")
+        dt = _PF_DTYPES.get(int(f.datatype))
+        if dt is None:
+            raise SourceError(f"{where}: field '{axis}' has unknown datatype {f.datatype}")
+        size = np.dtype(dt).itemsize
+        if f.offset + size > step:
+            raise SourceError(f"{where}: field '{axis}' at offset {f.offset} does not fit point_step {step}")
+        cols.append((int(f.offset), order + dt))
+    buf = np.frombuffer(data, dtype=np.uint8, count=row_step * h).reshape(h, row_step)[:, : step * w]
+    rows = np.ascontiguousarray(buf).reshape(h * w, step)
+    out = np.empty((h * w, 3), dtype=np.float32)
+    for k, (off, dt) in enumerate(cols):
+        out[:, k] = rows[:, off : off + np.dtype(dt).itemsize].copy().view(dt)[:, 0]
+    return out
+
+
+class McapCloudSource:
+    """Streams (sensor points, pose, stamp, raw bytes) from a ROS 2 MCAP file."""
+
+    def __init__(self, path: str | Path, topic: str | None, world_frame: str, pose_topic: str | None) -> None:
+        from mcap.exceptions import McapError
+        from mcap.reader import make_reader
+
+        self.path = Path(path)
+        self.world_frame = world_frame
+        self.pose_topic = pose_topic
+        try:
+            self._handle = open(self.path, "rb")
+            self._reader = make_reader(self._handle, decoder_factories=[_decoder_factory()])
+            summary = self._reader.get_summary()
+        except OSError as err:
+            raise SourceError(f"{self.path}: cannot read: {err.strerror}") from err
+        except (McapError, ValueError, EOFError, AssertionError) as err:
+            raise SourceError(f"{self.path}: not a readable MCAP file ({err})") from err
+        if summary is None:
+            raise SourceError(f"{self.path}: MCAP has no summary section (truncated or not finished)")
+        topics = {c.topic: summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "" for c in summary.channels.values()}
+        counts = {summary.channels[cid].topic: n for cid, n in (summary.statistics.channel_message_counts.items() if summary.statistics else [])}
+        clouds = sorted(t for t, s in topics.items() if s == CLOUD)
+        if topic is None:
+            if len(clouds) != 1:
+                raise SourceError(
+                    f"{self.path}: found {len(clouds)} PointCloud2 topics ({', '.join(clouds) or 'none'}); choose one with --topic"
+                )
+            topic = clouds[0]
+        elif topics.get(topic) != CLOUD:
+            raise SourceError(f"{self.path}: topic '{topic}' is not a PointCloud2 topic (PointCloud2 topics: {', '.join(clouds) or 'none'})")
+        self.topic = topic
+        self.count = counts.get(topic)
+        if pose_topic is not None and topics.get(pose_topic) not in POSE_TYPES:
+            raise SourceError(f"{self.path}: pose topic '{pose_topic}' is not Odometry or PoseStamped")
+        self._tf_topics = [t for t, s in topics.items() if s == TF]
+        self._edges: dict[tuple[str, str], StampedPoses] = {}
+        self._sensor_poses: StampedPoses | None = None
+
+    def _load_poses(self) -> None:
+        from mcap.exceptions import McapError
+
+        try:
+            if self.pose_topic is not None:
+                series = StampedPoses()
+                for _, _, _, msg in self._reader.iter_decoded_messages(topics=[self.pose_topic], log_time_order=True):
+                    pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
+                    series.add(_stamp(msg.header), _pose_of(pose.position, pose.orientation))
+                if not series.stamps:
+                    raise SourceError(f"{self.path}: pose topic '{self.pose_topic}' holds no messages")
+                self._sensor_poses = series
+                return
+            for _, channel, _, msg in self._reader.iter_decoded_messages(topics=self._tf_topics, log_time_order=True):
+                for tr in msg.transforms:
+                    key = (tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/"))
+                    series = self._edges.setdefault(key, StampedPoses())
+                    series.static = channel.topic == "/tf_static"
+                    stamp = _stamp(tr.header)
+                    if series.stamps and stamp < series.stamps[-1]:
+                        raise SourceError(f"{self.path}: transform {key[0]} -> {key[1]} stamps go backwards at {stamp} ns")
+                    series.add(stamp, _pose_of(tr.transform.translation, tr.transform.rotation))
+        except (McapError, ValueError, EOFError) as err:
+            raise SourceError(f"{self.path}: corrupt MCAP while reading poses ({err})") from err
+
+    def _chain(self, frame: str, stamp: int) -> Pose:
+        """Pose of `frame` in the world frame at `stamp`, walking /tf edges either way."""
+        if frame == self.world_frame:
+            return Pose.identity()
+        # breadth-first search over the (undirected) transform tree
+        prev: dict[str, tuple[str, tuple[str, str], bool]] = {}
+        seen = {self.world_frame}
+        queue = deque([self.world_frame])
+        while queue:
+            node = queue.popleft()
+            for (parent, child) in self._edges:
+                for a, b, forward in ((parent, child, True), (child, parent, False)):
+                    if a == node and b not in seen:
+                        seen.add(b)
+                        prev[b] = (a, (parent, child), forward)
+                        queue.append(b)
+        if frame not in prev:
+            raise SourceError(f"{self.path}: no transform chain from '{self.world_frame}' to '{frame}' in /tf")
+        pose = Pose.identity()
+        node = frame
+        while node != self.world_frame:
+            a, edge, forward = prev[node]
+            p = self._edges[edge].at(stamp)
+            if p is None:
+                s = self._edges[edge].stamps
+                raise SourceError(
+                    f"{self.path}: transform {edge[0]} -> {edge[1]} has no value at {stamp} ns (known {s[0]}..{s[-1]})"
+                )
+            if not forward:
+                r = p.rotation.T
+                p = Pose(r, -r @ p.translation)
+            pose = p.compose(pose)
+            node = a
+        return pose
+
+    def scans(self) -> Iterator[tuple[np.ndarray, Pose, int, int]]:
+        from mcap.exceptions import McapError
+
+        self._load_poses()
+        index = 0
+        try:
+            for _, _, message, msg in self._reader.iter_decoded_messages(topics=[self.topic], log_time_order=True):
+                points = decode_pointcloud2(self.path, msg, index)
+                stamp = _stamp(msg.header)
+                if self._sensor_poses is not None:
+                    pose = self._sensor_poses.at(stamp)
+                    if pose is None:
+                        raise SourceError(f"{self.path}: pose topic '{self.pose_topic}' has no pose at {stamp} ns")
+                else:
+                    pose = self._chain(msg.header.frame_id.lstrip("/"), stamp)
+                yield points, pose, stamp, len(message.data)
+                index += 1
+        except (McapError, ValueError, EOFError, KeyError) as err:
+            raise SourceError(f"{self.path}: corrupt MCAP at message {index} of '{self.topic}' ({err})") from err
+
+
+def _decoder_factory():
+    from mcap_ros2.decoder import DecoderFactory
+
+    return DecoderFactory()
