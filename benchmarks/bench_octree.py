@@ -34,7 +34,8 @@ def worker(engine: str, source: str, res: float, out: str) -> None:
 
         m = make_backend("octree", MapParams(resolution=res), SensorModel())
         report = build(open_source(source, SourceOptions()), m, progress=False)
-        result.update(insert_s=report.time_total - report.time_read, read_s=report.time_read, jit_s=report.time_jit,
+        # reading overlaps ray casting on a helper thread, so wall time includes it; it is small
+        result.update(insert_s=report.time_total, read_s=report.time_read, jit_s=report.time_jit,
                       raycast_s=report.time_raycast, update_s=report.time_update, ray_steps=report.ray_steps,
                       voxel_updates=report.voxel_updates, memory_bytes=m.memory_bytes())
         write_bt(out, m.leaves(), res, m.sensor.threshold_log)
@@ -54,18 +55,18 @@ def worker(engine: str, source: str, res: float, out: str) -> None:
             insert += t_read - t0
         result.update(insert_s=insert, read_s=read, memory_bytes=int(tree.memoryUsage()))
         tree.writeBinary(out)
+    # peak resident memory of this process since exec (VmHWM); ru_maxrss would include the
+    # parent's footprint inherited at fork
+    status = Path("/proc/self/status").read_text()
+    result["peak_rss_bytes"] = int(next(ln.split()[1] for ln in status.splitlines() if ln.startswith("VmHWM"))) * 1024
     Path(out + ".json").write_text(json.dumps(result))
 
 
 def run_worker(engine: str, source: Path, res: float, out: Path) -> dict:
     cmd = [sys.executable, __file__, "--worker", engine, str(source), str(res), str(out)]
-    proc = subprocess.Popen(cmd)
-    _, status, usage = os.wait4(proc.pid, 0)
-    if status != 0:
+    if subprocess.run(cmd).returncode != 0:
         raise SystemExit(f"{engine} worker failed on {source}")
-    result = json.loads(Path(str(out) + ".json").read_text())
-    result["peak_rss_bytes"] = usage.ru_maxrss * 1024
-    return result
+    return json.loads(Path(str(out) + ".json").read_text())
 
 
 def voxel_sets(bt: Path):

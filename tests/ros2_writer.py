@@ -98,7 +98,7 @@ def write_graph(path, scans) -> None:
     import struct
 
     out = bytearray(struct.pack("<I", len(scans)))
-    for i, (pts, origin, q) in enumerate(scans):
+    for pts, origin, q in scans:
         out += struct.pack("<I", len(pts))
         rec = np.zeros(len(pts), dtype=[("n", "<i4"), ("xyz", "<f8", (3,))])
         rec["n"] = 3

@@ -14,7 +14,7 @@ def box_scene(n_scans: int = 4, n_points: int = 300, seed: int = 0, size: float 
     """
     rng = np.random.default_rng(seed)
     out = []
-    for s in range(n_scans):
+    for _ in range(n_scans):
         origin = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(0.2, 1.0)])
         dirs = rng.normal(size=(n_points, 3))
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)

@@ -113,18 +113,46 @@ def write_scans(d: Path, n=2):
 
 BAD_CASES = {
     "missing source": (lambda d: d / "nope", 3, "nope: no such file or directory"),
-    "truncated pcd": (lambda d: _truncate(d / "0.pcd", 100), 3, "PCD binary body has"),
+    "truncated pcd": (lambda d: _truncate(d / "0.pcd", 100).parent, 3, "PCD binary body has"),
     "pcd without DATA": (lambda d: _rewrite(d / "0.pcd", b"DATA binary\n", b"DATUM binary\n"), 3, "PCD header has no DATA line"),
     "pcd bad viewpoint": (lambda d: _rewrite(d / "0.pcd", b"VIEWPOINT ", b"VIEWPOINT 1 "), 3, "VIEWPOINT needs 7 finite numbers"),
     "point outside key range": (lambda d: _far_point(d), 4, "outside the octree key range"),
     "empty directory": (lambda d: _empty(d), 3, "directory must hold .pcd or .ply scans"),
     "pose rows": (lambda d: _poses(d, 1), 3, "pose file has 1 poses for 2 scans"),
+    "mcap without the topic": (lambda d: _mcap(d), 3, "topic '/nope' is not a PointCloud2 topic"),
+    "mcap without transform": (lambda d: _mcap(d, skip_tf=True), 3, "no transform chain from 'map' to 'lidar'"),
+    "truncated mcap": (lambda d: _truncate(_mcap(d), 700), 3, "s.mcap"),
+    "mcap cloud row_step lies": (lambda d: _mcap(d, cloud_overrides={"row_step": 10**6}), 3,
+                                 "data has 1200 bytes, row_step x height needs 1000000"),
+    "ply short body": (lambda d: _ply(d, cut=40), 3, "PLY body has"),
+    "ply bad header": (lambda d: _ply(d, header=b"format binary_middle_endian 1.0"), 3, "PLY format"),
 }
+
+
+def _mcap(d: Path, **kw) -> Path:
+    from ros2_writer import write_mcap
+
+    scans = [(pts, o, yaw_quat(yaw)) for pts, o, yaw in box_scene(2, 100, seed=4)]
+    write_mcap(d / "s.mcap", scans, **kw)
+    return d / "s.mcap"
+
+
+def _ply(d: Path, cut: int = 0, header: bytes | None = None) -> Path:
+    pts = box_scene(1, 50, seed=1)[0][0].astype("<f4")
+    head = b"ply\nformat binary_little_endian 1.0\nelement vertex 50\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    if header is not None:
+        head = head.replace(b"format binary_little_endian 1.0", header)
+    body = pts.tobytes()
+    (d / "0.ply").write_bytes(head + (body[:-cut] if cut else body))
+    (d / "p.txt").write_text("0 0 0 0 0 0 0 1\n")
+    for p in d.glob("*.pcd"):
+        p.unlink()
+    return d / "0.ply"
 
 
 def _truncate(p: Path, n: int) -> Path:
     p.write_bytes(p.read_bytes()[:-n])
-    return p.parent
+    return p
 
 
 def _rewrite(p: Path, old: bytes, new: bytes) -> Path:
@@ -158,8 +186,10 @@ def test_bad_input_one_line_error_exit_code_no_output(tmp_path, case):
     out = tmp_path / "map.vxm"
     out.write_bytes(b"the user's previous map")
     args = ["build", source, "-o", out]
-    if case == "pose rows":
+    if case == "pose rows" or case.startswith("ply"):
         args += ["--poses", src_dir / "p.txt"]
+    if case == "mcap without the topic":
+        args += ["--topic", "/nope"]
     proc = subprocess.run([sys.executable, "-m", "voxtool.cli", *map(str, args)], capture_output=True, text=True,
                           env={**os.environ, "PYTHONWARNINGS": "ignore"})
     assert proc.returncode == exit_code, proc.stderr

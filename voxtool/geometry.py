@@ -49,14 +49,14 @@ class Pose:
         self.translation = np.asarray(translation, dtype=np.float64)
 
     @classmethod
-    def from_quat(cls, t: tuple | np.ndarray, qw: float, qx: float, qy: float, qz: float) -> "Pose":
+    def from_quat(cls, t: tuple | np.ndarray, qw: float, qx: float, qy: float, qz: float) -> Pose:
         return cls(quat_to_matrix(qw, qx, qy, qz), np.asarray(t, dtype=np.float64))
 
     @classmethod
-    def identity(cls) -> "Pose":
+    def identity(cls) -> Pose:
         return cls(np.eye(3), np.zeros(3))
 
-    def compose(self, other: "Pose") -> "Pose":
+    def compose(self, other: Pose) -> Pose:
         """self * other: apply `other` first, then `self`."""
         return Pose(self.rotation @ other.rotation, self.rotation @ other.translation + self.translation)
 

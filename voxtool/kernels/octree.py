@@ -94,7 +94,7 @@ def _finalize(n, child, mask, value, free, meta):
     value[n] = best
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def apply_updates(child, mask, value, free, meta, path, pstate, packed, start, hit, miss, cmin, cmax):
     """Apply sorted updates `packed` (Morton code << 1 | occupied) from index `start`.
 

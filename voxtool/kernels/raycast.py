@@ -49,45 +49,36 @@ def _brick_slot(brick, mask):
     return ((brick * _HASH_MULT) >> 24) & mask
 
 
-@njit(cache=True)
-def _grow_bricks(tab, touched, occ, bricks, n_bricks):
-    cap = tab.shape[0] * 2
-    mask = cap - 1
-    new_tab = np.full(cap, -1, dtype=np.int64)
-    for b in range(n_bricks):
-        s = _brick_slot(bricks[b], mask)
-        while new_tab[s] != -1:
-            s = (s + 1) & mask
-        new_tab[s] = b
-    n = touched.shape[0] * 2
-    new_touched = np.zeros((n, 8), dtype=np.int64)
-    new_occ = np.zeros((n, 8), dtype=np.int64)
-    new_bricks = np.empty(n, dtype=np.int64)
-    new_touched[:n_bricks] = touched[:n_bricks]
-    new_occ[:n_bricks] = occ[:n_bricks]
-    new_bricks[:n_bricks] = bricks[:n_bricks]
-    return new_tab, new_touched, new_occ, new_bricks
+class BrickBuffers:
+    """Reusable per-thread brick storage for `scan_bricks` (grown by the caller on overflow)."""
+
+    def __init__(self, capacity: int = 1 << 15) -> None:
+        self.tab = np.full((capacity * 2, 2), -1, dtype=np.int64)  # (brick code, brick index)
+        self.touched = np.zeros((capacity, 8), dtype=np.int64)
+        self.occ = np.zeros((capacity, 8), dtype=np.int64)
+        self.bricks = np.empty(capacity, dtype=np.int64)
+
+    def reset(self, used: int) -> None:
+        self.tab.fill(-1)
+        self.touched[:used] = 0
+        self.occ[:used] = 0
 
 
 @njit(cache=True, nogil=True)
-def scan_bricks(points, origin, resolution, max_range, brick_hint, code_lo, code_hi):
-    """Voxels updated by one scan whose Morton code lies in [code_lo, code_hi), as bricks.
+def scan_bricks(points, origin, resolution, max_range, tab, touched, occ, bricks):
+    """Voxels updated by one scan, as bricks of 8x8x8 voxels, into caller-owned buffers.
 
-    Returns (bricks, touched, occupied, n_bricks, steps): brick codes (code >> 9) in arbitrary
-    order, and per brick two 512-bit masks (8 x int64) of the voxels touched by the scan and of
-    those that are endpoints (occupied wins over free). points: (N, 3) float32 world coordinates;
-    origin: (3,) float32; max_range < 0 means unlimited. Coordinates must already be checked to
-    lie in key range. Consecutive DDA steps stay in one brick for several steps, so the brick
-    table is consulted rarely and the masks stay in cache.
+    Returns (n_bricks, steps); n_bricks = -1 when the buffers are too small (the caller grows
+    them and calls again). Per brick: its code (Morton code >> 9) and two 512-bit masks
+    (8 x int64) of the voxels touched by the scan and of those holding an endpoint (occupied
+    wins over free). points: (N, 3) float32 world coordinates; origin: (3,) float32;
+    max_range < 0 means unlimited. Coordinates must already be checked to lie in key range.
+    Consecutive DDA steps stay in one brick for several steps, so the brick table is consulted
+    rarely and the masks stay in cache. (The buffers are never reallocated in here: an array
+    reassigned inside the loop stops numba from hoisting its loads, which cost 3x.)
     """
-    nb_cap = 1024
-    while nb_cap < brick_hint:
-        nb_cap <<= 1
-    tab = np.full(nb_cap * 2, -1, dtype=np.int64)
-    tmask = nb_cap * 2 - 1
-    touched = np.zeros((nb_cap, 8), dtype=np.int64)
-    occ = np.zeros((nb_cap, 8), dtype=np.int64)
-    bricks = np.empty(nb_cap, dtype=np.int64)
+    capacity = bricks.shape[0]
+    tmask = tab.shape[0] - 1
     n_bricks = 0
     steps = 0
     res_factor = 1.0 / resolution
@@ -168,34 +159,30 @@ def scan_bricks(points, origin, resolution, max_range, brick_hint, code_lo, code
                 length64 = np.float64(length)
             while True:
                 code = morton3(key[0], key[1], key[2])
-                if code >= code_lo and code < code_hi:
-                    brick = code >> BRICK_BITS
-                    if brick != last_brick:
-                        s = _brick_slot(brick, tmask)
-                        while True:
-                            b = tab[s]
-                            if b == -1:
-                                if n_bricks == bricks.shape[0]:
-                                    tab, touched, occ, bricks = _grow_bricks(tab, touched, occ, bricks, n_bricks)
-                                    tmask = tab.shape[0] - 1
-                                    s = _brick_slot(brick, tmask)
-                                    while tab[s] != -1:
-                                        s = (s + 1) & tmask
-                                bricks[n_bricks] = brick
-                                tab[s] = n_bricks
-                                b = n_bricks
-                                n_bricks += 1
-                                break
-                            if bricks[b] == brick:
-                                break
-                            s = (s + 1) & tmask
-                        bi = b
-                        last_brick = brick
-                    v = code & 511
-                    bit = np.int64(1) << (v & 63)
-                    touched[bi, v >> 6] |= bit
-                    if pass_ == 0:
-                        occ[bi, v >> 6] |= bit
+                brick = code >> BRICK_BITS
+                if brick != last_brick:
+                    s = _brick_slot(brick, tmask)
+                    while True:
+                        b = tab[s, 1]
+                        if b == -1:
+                            if n_bricks == capacity:
+                                return -1, steps
+                            bricks[n_bricks] = brick
+                            tab[s, 0] = brick
+                            tab[s, 1] = n_bricks
+                            b = n_bricks
+                            n_bricks += 1
+                            break
+                        if tab[s, 0] == brick:
+                            break
+                        s = (s + 1) & tmask
+                    bi = b
+                    last_brick = brick
+                v = code & 511
+                bit = np.int64(1) << (v & 63)
+                touched[bi, v >> 6] |= bit
+                if pass_ == 0:
+                    occ[bi, v >> 6] |= bit
                 if pass_ == 0:
                     break
                 steps += 1
@@ -210,7 +197,7 @@ def scan_bricks(points, origin, resolution, max_range, brick_hint, code_lo, code
                     break
                 if min(t_max[0], min(t_max[1], t_max[2])) > length64:
                     break
-    return bricks, touched, occ, n_bricks, steps
+    return n_bricks, steps
 
 
 @njit(cache=True, nogil=True)

@@ -33,6 +33,15 @@ class IntegrateTiming:
     ray_steps: int = 0
 
 
+@dataclass
+class PreparedScan:
+    """A scan's voxel updates computed ahead of the map update (ray casting is map-independent)."""
+
+    packed: np.ndarray  # Morton-sorted code << 1 | occupied
+    steps: int
+    seconds: float
+
+
 class MapBackend(Protocol):
     """What the pipeline, the snapshot writer and the exporters need from a backend."""
 
@@ -43,8 +52,14 @@ class MapBackend(Protocol):
     def warm_up(self) -> None:
         """Load the compiled kernels (JIT) before timing starts."""
 
+    def prepare(self, scan: Scan) -> PreparedScan:
+        """Compute a scan's voxel updates without touching the map (may run on another thread)."""
+
+    def apply(self, prepared: PreparedScan) -> IntegrateTiming:
+        """Fold prepared updates into the map, in scan order."""
+
     def integrate(self, scan: Scan) -> IntegrateTiming:
-        """Fold one scan into the map."""
+        """Fold one scan into the map (prepare + apply)."""
 
     def query(self, codes: np.ndarray) -> np.ndarray:
         """Log-odds at finest-level Morton codes; NaN where unknown."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -9,10 +10,10 @@ from typing import Any
 import numpy as np
 
 from voxtool.config import MapParams, SensorModel
-from voxtool.keys import coords_to_keys
 from voxtool.kernels import octree as K
-from voxtool.kernels.raycast import bricks_to_packed, scan_bricks
-from voxtool.maps.base import IntegrateTiming, Leaves
+from voxtool.kernels.raycast import BrickBuffers, bricks_to_packed, scan_bricks
+from voxtool.keys import coords_to_keys
+from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
 from voxtool.sources.scan import Scan
 
 BYTES_PER_SLOT = 4 + 1 + 4  # child int32, mask uint8, value float32
@@ -85,10 +86,22 @@ class OctreePool:
 
 _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="voxtool-raycast")
 _SPLITS = 2  # this machine class has 2 cores; each thread traces half of the rays
+_BUFFERS = threading.local()
 
 
 def _trace_part(scan: Scan, params: MapParams, lo: int, hi: int) -> tuple:
-    return scan_bricks(scan.points[lo:hi], scan.origin, params.resolution, params.max_range, 4096, 0, 1 << 62)
+    """Trace rays lo..hi into this thread's brick buffers; returns copies of the used part."""
+    buf = getattr(_BUFFERS, "bricks", None) or BrickBuffers()
+    while True:
+        n, steps = scan_bricks(scan.points[lo:hi], scan.origin, params.resolution, params.max_range,
+                               buf.tab, buf.touched, buf.occ, buf.bricks)
+        if n >= 0:
+            break
+        buf = BrickBuffers(2 * buf.bricks.shape[0])
+    _BUFFERS.bricks = buf
+    out = (buf.bricks[:n].copy(), buf.touched[:n].copy(), buf.occ[:n].copy(), steps)
+    buf.reset(n)
+    return out
 
 
 def scan_updates(scan: Scan, params: MapParams) -> tuple[np.ndarray, int]:
@@ -100,11 +113,11 @@ def scan_updates(scan: Scan, params: MapParams) -> tuple[np.ndarray, int]:
     coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
     cuts = np.linspace(0, n, _SPLITS + 1).astype(int)
     parts = list(_POOL.map(lambda k: _trace_part(scan, params, cuts[k], cuts[k + 1]), range(_SPLITS)))
-    bricks = np.concatenate([p[0][: p[3]] for p in parts])
-    touched = np.concatenate([p[1][: p[3]] for p in parts])
-    occ = np.concatenate([p[2][: p[3]] for p in parts])
+    bricks = np.concatenate([p[0] for p in parts])
+    touched = np.concatenate([p[1] for p in parts])
+    occ = np.concatenate([p[2] for p in parts])
     order = np.argsort(bricks, kind="stable")
-    return bricks_to_packed(bricks, touched, occ, order), int(sum(p[4] for p in parts))
+    return bricks_to_packed(bricks, touched, occ, order), int(sum(p[3] for p in parts))
 
 
 def warm_up_kernels() -> None:
@@ -130,13 +143,21 @@ class OctreeMap:
     def warm_up(self) -> None:
         warm_up_kernels()
 
-    def integrate(self, scan: Scan) -> IntegrateTiming:
+    def prepare(self, scan: Scan) -> PreparedScan:
+        """Ray casting: independent of the map, so it may run ahead on another thread."""
         t0 = time.perf_counter()
         packed, steps = scan_updates(scan, self.params)
-        t1 = time.perf_counter()
-        self.pool.apply(packed, self.sensor)
-        t2 = time.perf_counter()
-        return IntegrateTiming(raycast=t1 - t0, update=t2 - t1, voxel_updates=int(packed.shape[0]), ray_steps=steps)
+        return PreparedScan(packed, steps, time.perf_counter() - t0)
+
+    def apply(self, prepared: PreparedScan) -> IntegrateTiming:
+        """Tree update; prepared scans must be applied in scan order."""
+        t0 = time.perf_counter()
+        self.pool.apply(prepared.packed, self.sensor)
+        return IntegrateTiming(raycast=prepared.seconds, update=time.perf_counter() - t0,
+                               voxel_updates=int(prepared.packed.shape[0]), ray_steps=prepared.steps)
+
+    def integrate(self, scan: Scan) -> IntegrateTiming:
+        return self.apply(self.prepare(scan))
 
     def query(self, codes: np.ndarray) -> np.ndarray:
         return self.pool.query(codes)

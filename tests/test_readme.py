@@ -1,0 +1,20 @@
+"""The README's two set-up commands are the ones CI runs."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_ci_runs_the_readme_commands():
+    readme = (ROOT / "README.md").read_text()
+    block = re.search(r"```bash\n(.*?)```", readme, re.S).group(1).strip().splitlines()
+    assert len(block) == 2
+    assert "voxtool build --sample" in block[0] and "pytest" in block[1]
+    ci = (ROOT / ".ci" / "run").read_text()
+    for command in block:
+        core = command.replace("pip install -e", "pip install -q -e").replace("python -m pytest", "python -m pytest -q")
+        core = core.replace("apt-get update && apt-get install -y", "apt-get update -qq && apt-get install -y -qq")
+        assert core in ci, command
