@@ -94,22 +94,33 @@ def _finalize(n, child, mask, value, free, meta):
     value[n] = best
 
 
-@njit(cache=True, nogil=True)
-def apply_updates(child, mask, value, free, meta, path, pstate, packed, start, hit, miss, cmin, cmax):
-    """Apply sorted updates `packed` (Morton code << 1 | occupied) from index `start`.
+ADD = 0  # items are code << 1 | occupied: add hit/miss log-odds, clamp (OctoMap updateNode)
+SET = 1  # items are codes, values[i] is the new log-odds (writing back cached voxels)
 
-    Returns the index where it stopped: len(packed) when done, less when the pool needs to grow
+
+@njit(cache=True, nogil=True)
+def apply_updates(child, mask, value, free, meta, path, pstate, items, values, mode, start, hit, miss, cmin, cmax):
+    """Apply leaf updates from index `start`; any order works, Morton order is fastest.
+
+    mode ADD: items are Morton code << 1 | occupied, OctoMap's clamped log-odds update with its
+    early abort for already clamped leaves. mode SET: items are Morton codes and the leaf is set
+    to values[i] (skipped when it already holds that value).
+    Returns the index where it stopped: len(items) when done, less when the pool needs to grow
     (the caller grows the arrays and calls again; `path`/`pstate` carry the state across).
     pstate = [deepest valid depth of path (-1: none), previous code].
     """
-    n_upd = packed.shape[0]
+    n_upd = items.shape[0]
     capacity = child.shape[0]
     i = start
     while i < n_upd:
         if slots_available(meta, capacity) < BLOCK_RESERVE:
             return i
-        code = packed[i] >> 1
-        upd = hit if (packed[i] & 1) else miss
+        if mode == ADD:
+            code = items[i] >> 1
+            upd = hit if (items[i] & 1) else miss
+        else:
+            code = items[i]
+            upd = values[i]
         plen = pstate[0]
         root_created = False
         if meta[META_ROOT] == 0:
@@ -131,7 +142,7 @@ def apply_updates(child, mask, value, free, meta, path, pstate, packed, start, h
             for d in range(plen, common, -1):
                 if d < 16:
                     _finalize(path[d], child, mask, value, free, meta)
-        # read-only search (OctoMap's early abort when the leaf is already clamped)
+        # read-only search (OctoMap's early abort when nothing would change)
         d = common
         nd = path[d]
         found = True
@@ -148,7 +159,11 @@ def apply_updates(child, mask, value, free, meta, path, pstate, packed, start, h
                 break
         if found and not root_created:
             v = value[nd]
-            if (upd >= 0 and v >= cmax) or (upd <= 0 and v <= cmin):
+            if mode == ADD:
+                unchanged = (upd >= 0 and v >= cmax) or (upd <= 0 and v <= cmin)
+            else:
+                unchanged = v == upd
+            if unchanged:
                 pstate[0] = d
                 pstate[1] = code
                 i += 1
@@ -182,11 +197,14 @@ def apply_updates(child, mask, value, free, meta, path, pstate, packed, start, h
             nd = child[nd] + pos
             d += 1
             path[d] = nd
-        v = value[nd] + upd
-        if v < cmin:
-            v = cmin
-        elif v > cmax:
-            v = cmax
+        if mode == ADD:
+            v = value[nd] + upd
+            if v < cmin:
+                v = cmin
+            elif v > cmax:
+                v = cmax
+        else:
+            v = upd
         value[nd] = v
         pstate[0] = 16
         pstate[1] = code
@@ -201,7 +219,7 @@ def apply_updates(child, mask, value, free, meta, path, pstate, packed, start, h
     return n_upd
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def lookup(child, mask, value, meta, codes, out_value, out_depth):
     """Value and depth of the leaf holding each finest-level code; depth -1 where unknown."""
     for i in range(codes.shape[0]):

@@ -7,10 +7,12 @@ from collections.abc import Callable
 from voxtool.config import MapParams, SensorModel
 from voxtool.errors import ParameterError
 from voxtool.maps.base import MapBackend
+from voxtool.maps.octocache import OctoCacheMap
 from voxtool.maps.octree import OctreeMap
 
 BACKENDS: dict[str, Callable[..., MapBackend]] = {
     "octree": OctreeMap,
+    "octocache": OctoCacheMap,
 }
 
 

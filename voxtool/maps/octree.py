@@ -17,6 +17,7 @@ from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
 from voxtool.sources.scan import Scan
 
 BYTES_PER_SLOT = 4 + 1 + 4  # child int32, mask uint8, value float32
+_NO_VALUES = np.zeros(0, dtype=np.float32)
 
 
 class OctreePool:
@@ -35,19 +36,26 @@ class OctreePool:
         self.value = np.concatenate([self.value, np.zeros(new - old, dtype=np.float32)])
         self.free = np.concatenate([self.free, np.zeros(new // 8 + 1 - self.free.shape[0], dtype=np.int32)])
 
-    def apply(self, packed: np.ndarray, sensor: SensorModel) -> None:
-        """Apply Morton-sorted updates (code << 1 | occupied)."""
+    def _run(self, items: np.ndarray, values: np.ndarray, mode: int, sensor: SensorModel) -> None:
         hit, miss = np.float32(sensor.hit_log), np.float32(sensor.miss_log)
         cmin, cmax = np.float32(sensor.clamp_min_log), np.float32(sensor.clamp_max_log)
         start = 0
         while True:
             start = K.apply_updates(
                 self.child, self.mask, self.value, self.free, self.meta, self.path, self.pstate,
-                packed, start, hit, miss, cmin, cmax,
+                items, values, mode, start, hit, miss, cmin, cmax,
             )
-            if start >= packed.shape[0]:
+            if start >= items.shape[0]:
                 return
             self._grow()
+
+    def apply(self, packed: np.ndarray, sensor: SensorModel) -> None:
+        """Apply updates (code << 1 | occupied) with OctoMap's rule; Morton order is fastest."""
+        self._run(packed, _NO_VALUES, K.ADD, sensor)
+
+    def set_values(self, codes: np.ndarray, values: np.ndarray, sensor: SensorModel) -> None:
+        """Overwrite finest-level voxels with log-odds `values` (cache write-back)."""
+        self._run(codes, np.ascontiguousarray(values, dtype=np.float32), K.SET, sensor)
 
     def load(self, leaves: Leaves) -> None:
         start = 0
