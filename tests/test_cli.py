@@ -222,3 +222,18 @@ def test_wrong_output_suffixes_are_refused(tmp_path, sample_map):
     assert run("export", out, "-o", tmp_path / "x.obj")[0] == 2
     assert run("build", "--sample", "-o", tmp_path / "x.bt")[0] == 2
     assert run("build")[0] == 2
+
+
+def test_cache_bench_on_sample_reports_consistent_rows():
+    code, text = run("cache-bench", "--sample", "--threads", "1,2", "--order", "morton,random", "--json")
+    assert code == 0, text
+    rows = json.loads(text)["rows"]
+    assert [r["backend"] for r in rows] == ["octree"] + ["octocache"] * 4
+    for r in rows:
+        assert r["identical_to_octree"]
+        assert r["decomposition_error"] < 0.05
+        assert r["peak_rss_bytes"] > 0
+    for r in rows[1:]:
+        assert 0 < r["hit_ratio"] < 1
+        assert r["written_to_octree"] < r["voxel_updates"]
+        assert len(r["hit_ratio_per_scan"]) == 5

@@ -77,50 +77,127 @@ def main() -> None:
     """
 
 
+def scan_options(func):
+    """Options shared by every command that reads scans: source interpretation and map model."""
+    options = [
+        click.option("--resolution", default=0.2, show_default=True, type=float, help="Voxel edge length in metres."),
+        click.option("--max-range", default=-1.0, show_default=True, type=float,
+                     help="Rays longer than this are cut here and mark no hit (OctoMap maxrange); < 0 = unlimited."),
+        click.option("--min-range", default=0.0, show_default=True, type=float, help="Drop points closer than this to the sensor."),
+        click.option("--poses", type=click.Path(path_type=Path), help="Pose file (TUM, index+TUM or KITTI), one row per scan file."),
+        click.option("--no-viewpoint", is_flag=True,
+                     help="PCD points are already in the world frame; take only the ray origin from VIEWPOINT/--poses."),
+        click.option("--topic", help="MCAP PointCloud2 topic (default: the only one)."),
+        click.option("--world-frame", default="map", show_default=True, help="MCAP /tf frame the map is built in."),
+        click.option("--pose-topic", help="MCAP Odometry/PoseStamped topic giving the sensor pose (instead of /tf)."),
+        click.option("--start", default=0, show_default=True, type=int, help="First scan index to use."),
+        click.option("--stop", default=None, type=int, help="Stop before this scan index."),
+        click.option("--every", default=1, show_default=True, type=int, help="Use every n-th scan."),
+        click.option("--prob-hit", default=0.7, show_default=True, type=float),
+        click.option("--prob-miss", default=0.4, show_default=True, type=float),
+        click.option("--clamp-min", default=0.1192, show_default=True, type=float),
+        click.option("--clamp-max", default=0.971, show_default=True, type=float),
+        click.option("--threshold", default=0.5, show_default=True, type=float, help="Occupancy probability threshold."),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+def scan_setup(kw: dict):
+    """(SourceOptions, MapParams, SensorModel) from the scan_options values (removed from kw)."""
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.sources import SourceOptions
+
+    poses = kw.pop("poses")
+    options = SourceOptions(poses=str(poses) if poses else None, no_viewpoint=kw.pop("no_viewpoint"),
+                            topic=kw.pop("topic"), world_frame=kw.pop("world_frame"), pose_topic=kw.pop("pose_topic"),
+                            start=kw.pop("start"), stop=kw.pop("stop"), every=kw.pop("every"), min_range=kw["min_range"])
+    params = MapParams(resolution=kw.pop("resolution"), max_range=kw.pop("max_range"), min_range=kw.pop("min_range"))
+    sensor = SensorModel(kw.pop("prob_hit"), kw.pop("prob_miss"), kw.pop("clamp_min"), kw.pop("clamp_max"),
+                         kw.pop("threshold"))
+    return options, params, sensor
+
+
+def resolve_source(source, sample):
+    from voxtool.errors import ParameterError
+
+    if sample == (source is not None):
+        raise ParameterError("give exactly one of SOURCE or --sample")
+    return SAMPLE_DIR if sample else source
+
+
 @main.command()
 @click.argument("source", required=False, type=click.Path(path_type=Path))
 @click.option("--sample", is_flag=True, help="Use the small real sample shipped with voxtool (norlab, BSD-3) as SOURCE.")
 @click.option("-o", "--output", type=click.Path(path_type=Path), help="Write the map snapshot (.vxm) here (atomically).")
 @click.option("--backend", default="octree", show_default=True, help="Map backend (see docs/backends.md).")
-@click.option("--resolution", default=0.2, show_default=True, type=float, help="Voxel edge length in metres.")
-@click.option("--max-range", default=-1.0, show_default=True, type=float,
-              help="Rays longer than this are cut here and mark no hit (OctoMap maxrange); < 0 = unlimited.")
-@click.option("--min-range", default=0.0, show_default=True, type=float, help="Drop points closer than this to the sensor.")
-@click.option("--poses", type=click.Path(path_type=Path), help="Pose file (TUM, index+TUM or KITTI), one row per scan file.")
-@click.option("--no-viewpoint", is_flag=True, help="PCD points are already in the world frame; take only the ray origin from VIEWPOINT/--poses.")
-@click.option("--topic", help="MCAP PointCloud2 topic (default: the only one).")
-@click.option("--world-frame", default="map", show_default=True, help="MCAP /tf frame the map is built in.")
-@click.option("--pose-topic", help="MCAP Odometry/PoseStamped topic giving the sensor pose (instead of /tf).")
-@click.option("--start", default=0, show_default=True, type=int, help="First scan index to use.")
-@click.option("--stop", default=None, type=int, help="Stop before this scan index.")
-@click.option("--every", default=1, show_default=True, type=int, help="Use every n-th scan.")
-@click.option("--prob-hit", default=0.7, show_default=True, type=float)
-@click.option("--prob-miss", default=0.4, show_default=True, type=float)
-@click.option("--clamp-min", default=0.1192, show_default=True, type=float)
-@click.option("--clamp-max", default=0.971, show_default=True, type=float)
-@click.option("--threshold", default=0.5, show_default=True, type=float, help="Occupancy probability threshold.")
+@scan_options
 @click.option("--json", "as_json", is_flag=True, help="Print statistics and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def build(source, sample, output, backend, resolution, max_range, min_range, poses, no_viewpoint, topic, world_frame,
-          pose_topic, start, stop, every, prob_hit, prob_miss, clamp_min, clamp_max, threshold, as_json, progress):
+def build(source, sample, output, backend, as_json, progress, **kw):
     """Build an occupancy map from SOURCE: a directory of PCD (or PLY + --poses) scans, a single
     PCD/PLY file, a ROS 2 .mcap file, or an OctoMap .graph file."""
     from voxtool.api import build_map
-    from voxtool.config import MapParams, SensorModel
-    from voxtool.errors import ParameterError
-    from voxtool.sources import SourceOptions
 
-    if sample == (source is not None):
-        raise ParameterError("give exactly one of SOURCE or --sample")
-    src = SAMPLE_DIR if sample else source
-    options = SourceOptions(poses=str(poses) if poses else None, no_viewpoint=no_viewpoint, topic=topic,
-                            world_frame=world_frame, pose_topic=pose_topic, start=start, stop=stop, every=every,
-                            min_range=min_range)
-    params = MapParams(resolution=resolution, max_range=max_range, min_range=min_range)
-    sensor = SensorModel(prob_hit, prob_miss, clamp_min, clamp_max, threshold)
-    result = build_map(src, options, params, sensor, backend, output, progress)
+    options, params, sensor = scan_setup(kw)
+    result = build_map(resolve_source(source, sample), options, params, sensor, backend, output, progress)
     emit(result, as_json, summary_rows(result) + ([("written", str(output))] if output else []))
+
+
+def int_list(text: str) -> list:
+    return [int(v) for v in text.split(",")] if text else []
+
+
+@main.command("cache-bench")
+@click.argument("source", required=False, type=click.Path(path_type=Path))
+@click.option("--sample", is_flag=True, help="Use the shipped sample as SOURCE.")
+@scan_options
+@click.option("--tau", default="4", show_default=True, help="Bucket threshold(s) after eviction, comma-separated sweep.")
+@click.option("--buckets", default="", help="Bucket count(s) (powers of two), comma-separated; default: the paper's rule.")
+@click.option("--order", default="morton", show_default=True,
+              help="Write-back order(s) of evicted voxels: morton, xyz, random, bucket (comma-separated sweep).")
+@click.option("--threads", default="1,2", show_default=True, help="1 (serial) and/or 2 (octree update on a second thread).")
+@click.option("--json", "as_json", is_flag=True, help="Print all rows as JSON.")
+@handle_errors
+def cache_bench_cmd(source, sample, tau, buckets, order, threads, as_json, **kw):
+    """Run the same scans through the plain octree and through OctoCache settings; report time and
+    where it goes, cache hit ratio, octree writes saved, memory, and check the maps are identical
+    (exit 1 when any differs)."""
+    from voxtool.cachebench import cache_bench
+    from voxtool.errors import ParameterError, VoxtoolError
+
+    options, params, sensor = scan_setup(kw)
+    orders = [o.strip() for o in order.split(",") if o.strip()]
+    try:
+        taus, bucket_list, thread_list = int_list(tau), int_list(buckets) or [None], int_list(threads)
+    except ValueError:
+        raise ParameterError("--tau, --buckets and --threads take comma-separated integers") from None
+
+    def progress(k, n, backend, cfg):
+        click.echo(f"[{k + 1}/{n}] {backend} {cfg}", err=True)
+
+    result = cache_bench(resolve_source(source, sample), options.__dict__, params.to_dict(), sensor.to_dict(),
+                         taus, bucket_list, orders, thread_list, progress if sys.stderr.isatty() else None)
+    rows = result["rows"]
+    if as_json:
+        click.echo(json.dumps(result, indent=2))
+    else:
+        head = f"{'backend':<9} {'thr':>3} {'tau':>3} {'buckets':>8} {'order':<7} {'total s':>8} {'raycast':>8} {'insert':>7} {'evict':>6} {'octree':>7} {'wait':>6} {'hit %':>6} {'written/updates':>17} {'speedup':>7} {'peak MiB':>8} {'same':>4}"
+        click.echo(head)
+        for r in rows:
+            cache = r["backend"] == "octocache"
+            click.echo(
+                f"{r['backend']:<9} {r.get('threads', '-')!s:>3} {r.get('tau', '-')!s:>3} {r.get('buckets', '-')!s:>8} "
+                f"{r.get('order', '-'):<7} {r['total_s']:>8.3f} {r['raycast_s']:>8.3f} {r.get('insert_s', 0):>7.3f} "
+                f"{r.get('evict_s', 0):>6.3f} {r['octree_update_s']:>7.3f} {r.get('wait_s', 0):>6.3f} "
+                f"{(100 * r['hit_ratio'] if cache else 0):>6.1f} "
+                f"{(str(r['written_to_octree']) + '/' + str(r['voxel_updates'])) if cache else '-':>17} "
+                f"{r['speedup']:>7.2f} {(r['peak_rss_bytes'] or 0) / 2**20:>8.1f} {'yes' if r['identical_to_octree'] else 'NO':>4}")
+    bad = [r for r in rows if not r["identical_to_octree"]]
+    if bad:
+        raise VoxtoolError(f"{source or 'sample'}: {len(bad)} OctoCache configuration(s) built a map different from the octree")
 
 
 @main.command()

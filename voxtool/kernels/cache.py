@@ -14,22 +14,36 @@ from voxtool.kernels.octree import META_ROOT
 
 
 @njit(cache=True, inline="always")
-def _octree_value(child, mask, value, meta, code):
-    """Log-odds of the leaf holding `code`, and whether the octree knows the voxel."""
+def _octree_value(child, mask, value, meta, code, path, pstate):
+    """Log-odds of the leaf holding `code` (0.0 when the octree does not know the voxel).
+
+    Read-only walk that restarts from the deepest node shared with the previous lookup
+    (path[0..pstate[0]], previous code pstate[1]): Morton-ordered misses share most of the path."""
     if meta[META_ROOT] == 0:
-        return np.float32(0.0), False
-    nd = 0
+        return np.float32(0.0)
     d = 0
+    if pstate[0] > 0:
+        x = code ^ pstate[1]
+        t = 0
+        while (x >> (3 * (t + 1))) != 0:
+            t += 1
+        d = 16 if x == 0 else 15 - t
+        if d > pstate[0]:
+            d = pstate[0]
+    nd = path[d]
     while True:
-        if mask[nd] == 0:
-            return value[nd], True
-        if d == 16:
-            return value[nd], True
+        if mask[nd] == 0 or d == 16:
+            pstate[0] = d
+            pstate[1] = code
+            return value[nd]
         pos = (code >> (3 * (15 - d))) & 7
         if mask[nd] & (1 << pos) == 0:
-            return np.float32(0.0), False
+            pstate[0] = d
+            pstate[1] = code
+            return np.float32(0.0)
         nd = child[nd] + pos
         d += 1
+        path[d] = nd
 
 
 @njit(cache=True, nogil=True)
@@ -41,6 +55,8 @@ def cache_insert(packed, start, count, cell_code, cell_val, slots, child, mask, 
     Returns (hits, index reached)."""
     wmask = count.shape[0] - 1
     hits = 0
+    path = np.zeros(17, dtype=np.int64)  # root is slot 0
+    pstate = np.zeros(2, dtype=np.int64)
     for i in range(start, packed.shape[0]):
         code = packed[i] >> 1
         upd = hit if (packed[i] & 1) else miss
@@ -56,8 +72,7 @@ def cache_insert(packed, start, count, cell_code, cell_val, slots, child, mask, 
         else:
             if c == slots:
                 return hits, i
-            v0, _known = _octree_value(child, mask, value, meta, code)
-            v = v0 + upd
+            v = _octree_value(child, mask, value, meta, code, path, pstate) + upd
             cell_code[base + c] = code
             count[b] = c + 1
         if v < cmin:
