@@ -201,6 +201,102 @@ def cache_bench_cmd(source, sample, tau, buckets, order, threads, as_json, **kw)
 
 
 @main.command()
+@click.argument("source", required=False, type=click.Path(path_type=Path))
+@click.option("--sample", is_flag=True, help="Use the shipped sample as SOURCE.")
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Packet log to write (.mcap).")
+@click.option("--robot", default="r1", show_default=True, help="Robot id (1..16 bytes) stamped on every packet.")
+@click.option("--backend", default="octree", show_default=True, help="Map backend that produces the changes.")
+@scan_options
+@click.option("--scheme", type=click.Choice(["hilbert", "nested", "racer", "occupied"]), default="hilbert", show_default=True)
+@click.option("--codec", type=click.Choice(["zstd", "zlib", "none"]), default="zstd", show_default=True)
+@click.option("--max-changes", default=50_000, show_default=True, type=int, help="Emit a packet once this many voxels changed state (d).")
+@click.option("--max-interval", default=0.5, show_default=True, type=float, help="...or this many seconds of scan time passed (t).")
+@click.option("--ring", default=3, show_default=True, type=int, help="Frames per packet of the 'occupied' scheme (k).")
+@click.option("--keyframe-every", default=0, show_default=True, type=int, help="Also emit a full-state keyframe every n packets.")
+@click.option("--rate", "rate_hz", default=10.0, show_default=True, type=float, help="Scan rate (Hz) assumed when the source has no stamps.")
+@click.option("--json", "as_json", is_flag=True, help="Print the encoding report as JSON.")
+@click.option("--progress/--no-progress", default=None)
+@handle_errors
+def encode(source, sample, output, robot, backend, scheme, codec, max_changes, max_interval, ring, keyframe_every,
+           rate_hz, as_json, progress, **kw):
+    """Map SOURCE and write the voxel state changes as packets to an MCAP packet log."""
+    from voxtool.codec.encode import EncodeOptions, encode_stream
+    from voxtool.errors import ParameterError
+    from voxtool.maps import make_backend
+    from voxtool.sources import open_source
+
+    if output.suffix.lower() != ".mcap":
+        raise ParameterError(f"{output}: packet logs are written as .mcap")
+    options, params, sensor = scan_setup(kw)
+    src = resolve_source(source, sample)
+    opts = EncodeOptions(robot, scheme, codec, max_changes, max_interval, ring, keyframe_every, rate_hz)
+    stream = open_source(src, options)
+    info = {"source": str(src), "backend": backend, "map_params": params.to_dict(), "sensor_model": sensor.to_dict()}
+    result = encode_stream(stream, make_backend(backend, params, sensor), output, opts, info, progress)
+    emit(result, as_json, [(k, str(v)) for k, v in result.items()])
+
+
+@main.command()
+@click.argument("log", type=click.Path(path_type=Path))
+@click.option("-o", "--output", type=click.Path(path_type=Path), help="Write the replayed state map as a snapshot (.vxm).")
+@click.option("--json", "as_json", is_flag=True, help="Dump packet headers and decoded voxel states as JSON.")
+@handle_errors
+def decode(log, output, as_json):
+    """Replay a packet log into a state map (free / occupied / unknown)."""
+    from voxtool.codec.fusion import fuse, packets_of, save_state_map
+
+    if as_json:
+        dump = []
+        for p in packets_of(log):
+            head = {k: v for k, v in p.__dict__.items() if k not in ("keys", "states")}
+            head["voxels"] = [[int(a), int(b), int(c), int(s)] for (a, b, c), s in zip(p.keys, p.states)]
+            dump.append(head)
+        click.echo(json.dumps(dump))
+    result = fuse([log])
+    if output is not None:
+        save_state_map(output, result, {"source": str(log), "packets": result.packets})
+    if not as_json:
+        occ = int((result.states == 1).sum())
+        emit({}, False, [("packets", str(result.packets)), ("occupied voxels", f"{occ:,}"),
+                         ("free voxels", f"{result.states.shape[0] - occ:,}")] + ([("written", str(output))] if output else []))
+
+
+@main.command()
+@click.argument("logs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("-o", "--output", type=click.Path(path_type=Path), help="Write the fused state map (.vxm).")
+@click.option("--extrinsic", multiple=True, help="ROBOT=tx,ty,tz,qw,qx,qy,qz: pose of that robot's map in the fused frame.")
+@click.option("--simulate-loss", type=float, default=None, help="Run the request/response resend simulation with this loss rate.")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the loss simulation.")
+@click.option("--json", "as_json", is_flag=True)
+@handle_errors
+def merge(logs, output, extrinsic, simulate_loss, seed, as_json):
+    """Fuse the packet logs of several robots: every voxel takes its latest-stamped state."""
+    from voxtool.codec.fusion import Extrinsic, fuse, save_state_map
+
+    ext = dict(Extrinsic.parse(e) for e in extrinsic)
+    result = fuse(list(logs), ext)
+    occ = int((result.states == 1).sum())
+    out = {"packets": result.packets, "occupied_voxels": occ, "free_voxels": int(result.states.shape[0] - occ),
+           "robots": result.robots}
+    if simulate_loss is not None:
+        from voxtool.codec.resend import simulate
+
+        sim = simulate(list(logs), loss=simulate_loss, seed=seed, extrinsics=ext)
+        out["simulation"] = sim
+    if output is not None:
+        save_state_map(output, result, {"sources": [str(p) for p in logs], "packets": result.packets})
+    rows = [("packets", str(result.packets)), ("occupied voxels", f"{occ:,}"), ("free voxels", f"{out['free_voxels']:,}")]
+    for robot, info in result.robots.items():
+        gaps = info["gaps"]
+        rows.append((f"robot {robot}", f"{info['packets']} packets, {len(gaps)} missing seq" + (f" {gaps[:10]}" if gaps else "")))
+    if "simulation" in out:
+        sim = out["simulation"]
+        rows.append(("simulation", f"loss {simulate_loss}: sent {sim['sent']}, lost {sim['lost']}, resent {sim['resent']}, "
+                                   f"keyframes {sim['keyframes']}, equal to lossless: {sim['equal_to_lossless']}"))
+    emit(out, as_json, rows)
+
+
+@main.command()
 @click.argument("map_file", type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print as JSON.")
 @click.option("--compare", "baseline", type=click.Path(path_type=Path),
@@ -208,10 +304,22 @@ def cache_bench_cmd(source, sample, tau, buckets, order, threads, as_json, **kw)
 @click.option("--tolerance", default=0.0, show_default=True, type=float, help="Relative tolerance for --compare.")
 @handle_errors
 def stats(map_file, as_json, baseline, tolerance):
-    """Statistics of a map snapshot (.vxm) or an OctoMap .bt file."""
+    """Statistics of a map snapshot (.vxm), an OctoMap .bt file, or a packet log (.mcap)."""
     from voxtool.api import map_stats
     from voxtool.stats import compare
 
+    if map_file.suffix.lower() == ".mcap":
+        from voxtool.codec.logstats import log_stats
+
+        result = log_stats(map_file)
+        rows = [("packets", str(result["packets"])), ("bytes", f"{result['bytes']:,}"),
+                ("total bandwidth", f"avg {result['total']['avg_Bps']:,.0f} B/s, max {result['total']['max_Bps']:,.0f} B/s")]
+        for robot, r in result["robots"].items():
+            rows.append((f"robot {robot}", f"{r['scheme']}/{r['codec']}: avg {r['avg_Bps']:,.0f} B/s, max {r['max_Bps']:,.0f} B/s, "
+                                           f"{r['bytes_per_changed_voxel']} B/changed voxel, x{r['compression_ratio']} compression, "
+                                           f"{r['ratio_to_raw_sensor']} of raw sensor B/s"))
+        emit(result, as_json, rows)
+        return
     result = map_stats(map_file)
     if baseline is not None:
         compare(result, baseline, tolerance)

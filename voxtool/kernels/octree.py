@@ -221,27 +221,39 @@ def apply_updates(child, mask, value, free, meta, path, pstate, items, values, m
 
 @njit(cache=True, nogil=True)
 def lookup(child, mask, value, meta, codes, out_value, out_depth):
-    """Value and depth of the leaf holding each finest-level code; depth -1 where unknown."""
+    """Value and depth of the leaf holding each finest-level code; depth -1 (NaN) where unknown.
+
+    Each walk restarts from the deepest node shared with the previous code, so Morton-sorted
+    queries cost little more than one level each."""
+    path = np.zeros(17, dtype=np.int64)
+    plen = -1
+    prev = np.int64(0)
     for i in range(codes.shape[0]):
         out_depth[i] = -1
         out_value[i] = np.nan
         if meta[META_ROOT] == 0:
             continue
         code = codes[i]
-        nd = 0
         d = 0
+        if plen > 0:
+            d = _common_depth(code, prev)
+            if d > plen:
+                d = plen
+        nd = path[d]
         while True:
-            if mask[nd] == 0:
-                out_depth[i] = d
-                out_value[i] = value[nd]
-                break
-            if d == 16:
+            if mask[nd] == 0 or d == 16:
+                if mask[nd] == 0:
+                    out_depth[i] = d
+                    out_value[i] = value[nd]
                 break
             pos = (code >> (3 * (15 - d))) & 7
             if mask[nd] & (1 << pos) == 0:
                 break
             nd = child[nd] + pos
             d += 1
+            path[d] = nd
+        plen = d
+        prev = code
 
 
 @njit(cache=True)

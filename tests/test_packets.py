@@ -1,0 +1,211 @@
+"""Map-change packets: Hilbert order, packet round trips, logs, lossless replay, fusion, resend."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scenes import box_scene, write_pcd, yaw_quat
+
+from voxtool.codec.encode import EncodeOptions, encode_stream, split_changes
+from voxtool.codec.fusion import Extrinsic, fuse, packets_of
+from voxtool.codec.hilbert import box_order, hilbert_index
+from voxtool.codec.packet import (
+    CODECS,
+    KIND_KEYFRAME,
+    SCHEMES,
+    UNCHANGED,
+    address_width,
+    decode_packet,
+    encode_packet,
+    pack_2bit,
+    unpack_2bit,
+)
+from voxtool.codec.resend import ChannelModel, simulate
+from voxtool.config import MapParams, SensorModel
+from voxtool.errors import FormatError
+from voxtool.keys import expand_leaves, morton_decode, morton_encode
+from voxtool.maps import make_backend
+from voxtool.sources import SourceOptions, open_source
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.tuples(st.integers(1, 12), st.integers(1, 12), st.integers(1, 12)))
+def test_box_order_is_skillings_hilbert_order_restricted_to_the_box(dims):
+    dx, dy, dz = dims
+    bits = max(0, (max(dims) - 1).bit_length())
+    cells = [(x, y, z) for z in range(dz) for y in range(dy) for x in range(dx)]
+    expected = sorted(range(len(cells)), key=lambda i: hilbert_index(*cells[i], bits))
+    assert box_order(dx, dy, dz).tolist() == expected
+
+
+def test_hilbert_curve_moves_one_cell_at_a_time_in_a_cube():
+    order = box_order(8, 8, 8)
+    xyz = np.stack([order % 8, (order // 8) % 8, order // 64], axis=1)
+    assert np.all(np.abs(np.diff(xyz, axis=0)).sum(axis=1) == 1)
+
+
+@given(st.lists(st.integers(0, 3), max_size=50))
+def test_2bit_packing_round_trip(codes):
+    arr = np.array(codes, dtype=np.uint8)
+    assert unpack_2bit(pack_2bit(arr), len(codes)).tolist() == codes
+
+
+voxel_sets = st.integers(0, 2**32 - 1).map(lambda seed: np.random.default_rng(seed))
+
+
+@settings(max_examples=40, deadline=None)
+@given(voxel_sets, st.sampled_from(SCHEMES[:3]), st.sampled_from(CODECS), st.integers(1, 300))
+def test_packet_round_trip(rng, scheme, codec, n):
+    keys = np.unique(rng.integers(40000, 40000 + rng.integers(1, 40), size=(n, 3)), axis=0)
+    states = rng.integers(0, 3, keys.shape[0]).astype(np.uint8)
+    box = (keys.min(axis=0) - 3, keys.max(axis=0) - keys.min(axis=0) + 7) if scheme == "racer" else None
+    blob = encode_packet("robot-7", 42, 123456789, scheme, codec, 0.1, keys, states, box=box)
+    p = decode_packet(blob)
+    got = dict(zip(map(tuple, p.keys.tolist()), p.states.tolist()))
+    assert got == dict(zip(map(tuple, keys.tolist()), states.tolist()))
+    assert (p.robot, p.seq, p.stamp_ns, p.scheme, p.codec) == ("robot-7", 42, 123456789, scheme, codec)
+
+
+def test_keyframe_holds_every_cell_and_no_unchanged():
+    grid = np.array([0, 1, 2, 0, 1, 2, 2, 2], np.uint8)
+    blob = encode_packet("r", 0, 0, "hilbert", "zstd", 0.2, np.zeros((0, 3)), grid, kind=KIND_KEYFRAME,
+                         box=(np.array([10, 10, 10]), np.array([2, 2, 2])))
+    p = decode_packet(blob)
+    assert p.kind == KIND_KEYFRAME and p.keys.shape[0] == 8 and sorted(p.states.tolist()) == sorted(grid.tolist())
+    bad = encode_packet("r", 0, 0, "nested", "none", 0.2, np.zeros((0, 3)), np.array([0, UNCHANGED], np.uint8),
+                        kind=KIND_KEYFRAME, box=(np.array([1, 1, 1]), np.array([2, 1, 1])))
+    with pytest.raises(FormatError, match="crc|CRC|unchanged"):
+        decode_packet(bad)
+
+
+def test_racer_address_width_follows_the_map_size():
+    assert address_width((10, 10, 2)) == 1 and address_width((100, 100, 6)) == 2
+    assert address_width((1000, 1000, 16)) == 3 and address_width((2000, 2000, 200)) == 4
+
+
+@pytest.mark.parametrize("mutate,message", [
+    (lambda b: b[:50], "shorter than the 96-byte"),
+    (lambda b: b"XXXX" + b[4:], "bad magic"),
+    (lambda b: b[:4] + bytes([9]) + b[5:], "version 9"),
+    (lambda b: b[:-1] + bytes([b[-1] ^ 0xFF]), "CRC mismatch"),
+    (lambda b: b + b"\0", "declares"),
+])
+def test_bad_packets_are_refused(mutate, message):
+    blob = encode_packet("r", 1, 2, "hilbert", "zstd", 0.1, np.array([[5, 5, 5], [6, 7, 8]]), np.array([0, 1], np.uint8))
+    with pytest.raises(FormatError, match=message):
+        decode_packet(mutate(blob))
+
+
+def test_huge_declared_box_fails_fast_without_allocating():
+    import struct
+    import zlib
+
+    from voxtool.codec.packet import HEADER, MAGIC
+
+    head = HEADER.pack(MAGIC, 1, 0, 0, 1, b"r", 0, 0, 0.1, 0, 0, 0, 0, 0, 0, 65535, 65535, 65535, 1, 1 << 29, 10, 0)
+    payload = b"\0" * 10
+    crc = zlib.crc32(payload, zlib.crc32(head[:-4]))
+    with pytest.raises(FormatError, match="exceeds"):
+        decode_packet(head[:-4] + struct.pack("<I", crc) + payload)
+
+
+def test_split_changes_keeps_runs_small_and_covers_everything():
+    rng = np.random.default_rng(0)
+    codes = np.unique(morton_encode(rng.integers(30000, 36000, size=(20000, 3))))
+    runs = split_changes(codes, 1000)
+    assert runs[0][0] == 0 and runs[-1][1] == codes.shape[0]
+    assert all(a < b and b - a <= 1000 for a, b in runs)
+    assert all(runs[i][1] == runs[i + 1][0] for i in range(len(runs) - 1))
+
+
+def scene_dir(tmp_path, n=5, seed=3):
+    d = tmp_path / "scans"
+    d.mkdir()
+    for i, (pts, o, yaw) in enumerate(box_scene(n, 400, seed=seed)):
+        write_pcd(d / f"{i}.pcd", pts, (*o, *yaw_quat(yaw)))
+    return d
+
+
+def map_states(backend):
+    lv = backend.leaves()
+    codes = expand_leaves(lv.codes, lv.depths)
+    vals = np.repeat(lv.values, np.left_shift(1, 3 * (16 - lv.depths.astype(np.int64))))
+    return codes, (vals > 0).astype(np.uint8)
+
+
+@pytest.mark.parametrize("scheme", ["hilbert", "nested", "racer"])
+@pytest.mark.parametrize("codec", ["zstd", "zlib", "none"])
+def test_decoding_a_log_reproduces_the_robots_map(tmp_path, scheme, codec):
+    src = scene_dir(tmp_path)
+    backend = make_backend("octree", MapParams(0.1), SensorModel())
+    out = tmp_path / "r.mcap"
+    opts = EncodeOptions(robot="r1", scheme=scheme, codec=codec, max_changes=300, max_interval=0.25)
+    report = encode_stream(open_source(src, SourceOptions()), backend, out, opts, {}, progress=False)
+    assert report["packets"] > 5
+    fused = fuse([out])
+    codes, states = map_states(backend)
+    assert np.array_equal(fused.codes, codes) and np.array_equal(fused.states, states)
+
+
+def test_occupied_scheme_carries_the_ever_occupied_voxels(tmp_path):
+    src = scene_dir(tmp_path)
+    backend = make_backend("octree", MapParams(0.1), SensorModel())
+    out = tmp_path / "o.mcap"
+    encode_stream(open_source(src, SourceOptions()), backend, out, EncodeOptions(scheme="occupied", ring=2), {}, False)
+    fused = fuse([out])
+    codes, states = map_states(backend)
+    # every voxel occupied now was newly occupied in some frame
+    assert set(codes[states == 1].tolist()) <= set(fused.codes.tolist())
+    packets = packets_of(out)
+    assert all(p.count <= 2 for p in packets)
+
+
+def test_two_robots_fuse_by_latest_stamp_and_extrinsics_move_keys(tmp_path):
+    def mk(robot, keys, states, stamp, seq):
+        return decode_packet(encode_packet(robot, seq, stamp, "hilbert", "none", 0.5, np.array(keys),
+                                           np.array(states, np.uint8)))
+
+    a = [mk("a", [[10, 10, 10], [11, 10, 10]], [1, 1], 100, 0), mk("a", [[10, 10, 10]], [0], 300, 1)]
+    b = [mk("b", [[10, 10, 10], [12, 10, 10]], [1, 0], 200, 0), mk("b", [[12, 10, 10]], [1], 300, 2)]
+    order = sorted(a + b, key=lambda p: (p.stamp_ns, p.robot, p.seq))
+    fused = fuse([], packets=iter(order))
+    got = dict(zip(map(tuple, morton_decode(fused.codes).tolist()), fused.states.tolist()))
+    assert got == {(10, 10, 10): 0, (11, 10, 10): 1, (12, 10, 10): 1}
+    assert fused.robots["b"]["gaps"] == [1]
+    _, ext = Extrinsic.parse("b=1.0,0,0,1,0,0,0")  # two voxels of 0.5 m along x
+    shifted = fuse([], {"b": ext}, packets=iter(order))
+    keys = set(map(tuple, morton_decode(shifted.codes).tolist()))
+    assert (14, 10, 10) in keys and (12, 10, 10) in keys
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_resend_under_loss_reorder_and_duplicates_equals_lossless(tmp_path, seed):
+    blobs = {}
+    for robot, start in (("a", 0), ("b", 2)):
+        d = tmp_path / robot
+        d.mkdir()
+        for i, (pts, o, yaw) in enumerate(box_scene(6, 300, seed=10 + start)):
+            write_pcd(d / f"{i}.pcd", pts, (*o, *yaw_quat(yaw)))
+        out = tmp_path / f"{robot}.mcap"
+        encode_stream(open_source(d, SourceOptions()), make_backend("octree", MapParams(0.1), SensorModel()), out,
+                      EncodeOptions(robot=robot, max_changes=200, max_interval=0.2), {}, False)
+        from voxtool.codec.log import read_log
+
+        blobs[robot] = [b for _, _, b in read_log(out)[1]]
+    sim = simulate([], seed=seed, channel=ChannelModel(loss=0.3, duplicate=0.2), blobs=blobs)
+    assert sim["lost"] > 0 and sim["resent"] >= sim["lost"] * 0.5 and sim["duplicates"] > 0
+    assert sim["complete"] and sim["equal_to_lossless"]
+
+
+def test_resend_falls_back_to_a_keyframe_after_a_long_outage(tmp_path):
+    d = scene_dir(tmp_path, n=6)
+    out = tmp_path / "k.mcap"
+    encode_stream(open_source(d, SourceOptions()), make_backend("octree", MapParams(0.1), SensorModel()), out,
+                  EncodeOptions(robot="k", max_changes=100, max_interval=0.1), {}, False)
+    from voxtool.codec.log import read_log
+
+    blobs = {"k": [b for _, _, b in read_log(out)[1]]}
+    sim = simulate([], seed=5, channel=ChannelModel(loss=0.9, keyframe_gap=3), blobs=blobs)
+    assert sim["keyframes"] >= 1 and sim["complete"] and sim["equal_to_lossless"]

@@ -1,0 +1,232 @@
+"""`voxtool encode`: run a map over a scan stream and emit map-change packets (seed Alg. 1)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from voxtool.codec.log import PacketLogWriter
+from voxtool.codec.packet import FREE, KIND_KEYFRAME, OCCUPIED, UNKNOWN, encode_packet
+from voxtool.errors import ParameterError
+from voxtool.keys import morton_decode
+from voxtool.maps.base import MapBackend
+from voxtool.sources import ScanStream
+
+
+@dataclass(frozen=True)
+class EncodeOptions:
+    robot: str = "r1"
+    scheme: str = "hilbert"
+    codec: str = "zstd"
+    max_changes: int = 50_000  # d: emit when this many voxels changed state
+    max_interval: float = 0.5  # t: or when this much scan time passed since the last packet (s)
+    ring: int = 3  # k frames per `occupied` packet
+    keyframe_every: int = 0  # also emit a full-state keyframe every n packets (0: never)
+    rate_hz: float = 10.0  # scan rate assumed when the source carries no stamps
+
+    def __post_init__(self) -> None:
+        if self.max_changes < 1 or self.max_interval <= 0 or self.ring < 1 or self.rate_hz <= 0:
+            raise ParameterError("--max-changes, --max-interval, --ring and --rate must be positive")
+        if not self.robot or len(self.robot.encode()) > 16:
+            raise ParameterError(f"robot id '{self.robot}' must be 1..16 bytes")
+
+
+def voxel_states(values: np.ndarray, threshold_log: float) -> np.ndarray:
+    """FREE / OCCUPIED / UNKNOWN of log-odds (NaN = unknown), by the map's threshold."""
+    out = np.where(values > np.float32(threshold_log), OCCUPIED, FREE).astype(np.uint8)
+    out[np.isnan(values)] = UNKNOWN
+    return out
+
+
+def split_changes(codes: np.ndarray, max_count: int, density: int = 256) -> list[tuple[int, int]]:
+    """Split Morton-sorted changed voxels into runs of at most `max_count` whose bounding box
+    holds at most max(density * count, 2^18) cells, cutting at octree node boundaries.
+
+    Our choice (formats/packet.md): one box over a long-range LiDAR scan's changes spans the
+    whole sensor range and is mostly 'unchanged' cells; octree-aligned runs keep boxes compact."""
+    out: list[tuple[int, int]] = []
+    stack = [(0, codes.shape[0])]
+    while stack:
+        a, b = stack.pop()
+        n = b - a
+        if n == 0:
+            continue
+        k = morton_decode(codes[[a, b - 1]]).astype(np.int64)
+        if n <= max_count:
+            keys = morton_decode(codes[a:b]).astype(np.int64) if n > 2 else k
+            volume = int(np.prod(keys.max(axis=0) - keys.min(axis=0) + 1))
+            if volume <= max(density * n, 1 << 18) or n == 1:
+                out.append((a, b))
+                continue
+        # cut where the highest differing Morton bit of the run's ends flips
+        top = int(codes[a] ^ codes[b - 1]).bit_length() - 1
+        prefix = (int(codes[b - 1]) >> top) << top
+        mid = int(np.searchsorted(codes[a:b], prefix)) + a
+        if mid <= a or mid >= b:
+            mid = a + n // 2
+        stack.append((mid, b))
+        stack.append((a, mid))
+    return out
+
+
+def merge_latest(codes_a, states_a, codes_b, states_b):
+    """Union of two change sets keeping b's state where both hold a voxel (sorted unique codes)."""
+    codes = np.concatenate([codes_a, codes_b])
+    states = np.concatenate([states_a, states_b])
+    order = np.argsort(codes, kind="stable")
+    codes, states = codes[order], states[order]
+    last = np.ones(codes.shape[0], dtype=bool)
+    last[:-1] = codes[1:] != codes[:-1]
+    return codes[last], states[last]
+
+
+@dataclass
+class EncodeReport:
+    scans: int = 0
+    packets: int = 0
+    keyframes: int = 0
+    wire_bytes: int = 0
+    raw_payload_bytes: int = 0
+    changed_voxels: int = 0
+    raw_sensor_bytes: int = 0
+    first_stamp_ns: int = 0
+    last_stamp_ns: int = 0
+    time_map_s: float = 0.0
+    time_encode_s: float = 0.0
+    encoded_cells: int = 0
+    packet_sizes: list[int] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        span = max(self.last_stamp_ns - self.first_stamp_ns, 1) / 1e9
+        return {
+            "scans": self.scans, "packets": self.packets, "keyframes": self.keyframes, "bytes": self.wire_bytes,
+            "changed_voxels": self.changed_voxels, "raw_sensor_bytes": self.raw_sensor_bytes,
+            "duration_s": round(span, 6), "avg_bandwidth_Bps": round(self.wire_bytes / span, 1),
+            "raw_sensor_Bps": round(self.raw_sensor_bytes / span, 1),
+            "bytes_per_changed_voxel": round(self.wire_bytes / max(self.changed_voxels, 1), 4),
+            "time_map_s": round(self.time_map_s, 4), "time_encode_s": round(self.time_encode_s, 4),
+            "encode_cells_per_s": round(self.encoded_cells / max(self.time_encode_s, 1e-9)),
+        }
+
+
+def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeOptions, info: dict,
+                  progress: bool | None = None) -> dict:
+    """Map every scan, accumulate state changes, write packets to an MCAP log at `output`."""
+    from tqdm import tqdm
+
+    if progress is None:
+        progress = sys.stderr.isatty()
+    thr = backend.sensor.threshold_log
+    res = backend.params.resolution
+    rep = EncodeReport()
+    pend_codes = np.zeros(0, np.int64)
+    pend_states = np.zeros(0, np.uint8)
+    frames: list[tuple[int, np.ndarray]] = []
+    map_lo = np.full(3, 65535, np.int64)
+    map_hi = np.zeros(3, np.int64)
+    seq = 0
+    last_emit = None
+    period = int(1e9 / opts.rate_hz)
+    backend.warm_up()
+
+    with PacketLogWriter(output) as log:
+
+        def emit(stamp: int) -> None:
+            nonlocal seq, pend_codes, pend_states
+            if opts.scheme in ("hilbert", "nested"):
+                runs = split_changes(pend_codes, opts.max_changes)
+            elif opts.scheme == "racer":
+                runs = [(a, min(a + opts.max_changes, pend_codes.shape[0]))
+                        for a in range(0, max(pend_codes.shape[0], 1), opts.max_changes)]
+            else:
+                runs = [(0, pend_codes.shape[0])]
+            for a, b in runs:
+                t0 = time.perf_counter()
+                keys = morton_decode(pend_codes[a:b]).astype(np.int64)
+                box = (map_lo, map_hi - map_lo + 1) if opts.scheme == "racer" else None
+                blob = encode_packet(opts.robot, seq, stamp, opts.scheme, opts.codec, res, keys, pend_states[a:b],
+                                     box=box, frames=frames[-opts.ring:] if opts.scheme == "occupied" else None)
+                if opts.scheme in ("hilbert", "nested") and keys.shape[0]:
+                    rep.encoded_cells += int(np.prod(keys.max(axis=0) - keys.min(axis=0) + 1))
+                rep.time_encode_s += time.perf_counter() - t0
+                log.write(opts.robot, seq, stamp, blob)
+                rep.packets += 1
+                rep.wire_bytes += len(blob)
+                rep.packet_sizes.append(len(blob))
+                seq += 1
+            rep.changed_voxels += int(pend_codes.shape[0])
+            pend_codes, pend_states = pend_codes[:0], pend_states[:0]
+            if opts.keyframe_every and seq % opts.keyframe_every == 0 and opts.scheme in ("hilbert", "nested"):
+                kf = keyframe_blob(backend, opts, seq, stamp)
+                log.write(opts.robot, seq, stamp, kf)
+                rep.keyframes += 1
+                rep.wire_bytes += len(kf)
+                seq += 1
+
+        bar = tqdm(total=stream.count, unit="scan", disable=not progress, file=sys.stderr, desc="encode")
+        try:
+            for scan in stream.scans:
+                stamp = scan.stamp_ns if scan.stamp_ns else scan.index * period
+                if rep.scans == 0:
+                    rep.first_stamp_ns = stamp
+                t0 = time.perf_counter()
+                prepared = backend.prepare(scan)
+                codes = prepared.packed >> 1
+                before = voxel_states(backend.query(codes), thr)
+                backend.apply(prepared)
+                after = voxel_states(backend.query(codes), thr)
+                rep.time_map_s += time.perf_counter() - t0
+                changed = before != after
+                if changed.any():  # running box of every voxel that ever changed: RACER's address space
+                    ck = morton_decode(codes[changed]).astype(np.int64)
+                    map_lo = np.minimum(map_lo, ck.min(axis=0))
+                    map_hi = np.maximum(map_hi, ck.max(axis=0))
+                new_occ = codes[changed & (after == OCCUPIED)]
+                frames.append((rep.scans, morton_decode(new_occ)))
+                frames = frames[-opts.ring:]
+                pend_codes, pend_states = merge_latest(pend_codes, pend_states, codes[changed], after[changed])
+                rep.scans += 1
+                rep.raw_sensor_bytes += scan.raw_bytes
+                rep.last_stamp_ns = stamp
+                if last_emit is None:
+                    last_emit = stamp
+                due = (pend_codes.shape[0] >= opts.max_changes or stamp - last_emit >= opts.max_interval * 1e9
+                       or opts.scheme == "occupied")
+                if due:
+                    emit(stamp)
+                    last_emit = stamp
+                bar.update(1)
+            if pend_codes.shape[0]:
+                emit(rep.last_stamp_ns)
+        finally:
+            bar.close()
+        # the data covers one scan period past the last scan's stamp
+        rep.last_stamp_ns += period if rep.scans else 0
+        meta = {**info, "robot": opts.robot, "scheme": opts.scheme, "codec": opts.codec,
+                "max_changes": opts.max_changes, "max_interval": opts.max_interval, "ring": opts.ring,
+                "resolution": res, "raw_sensor_bytes": rep.raw_sensor_bytes, "scans": rep.scans,
+                "first_stamp_ns": rep.first_stamp_ns, "last_stamp_ns": rep.last_stamp_ns}
+        log.metadata(opts.robot, meta)
+    out = rep.to_dict()
+    out.update(robot=opts.robot, scheme=opts.scheme, codec=opts.codec, output=str(output))
+    return out
+
+
+def keyframe_blob(backend: MapBackend, opts: EncodeOptions, seq: int, stamp: int) -> bytes:
+    """Full-state keyframe (free / occupied / unknown, no 'unchanged') of the map's known box."""
+    from voxtool.keys import expand_leaves
+
+    lv = backend.leaves()
+    codes = expand_leaves(lv.codes, lv.depths)
+    keys = morton_decode(codes).astype(np.int64)
+    values = np.repeat(lv.values, np.left_shift(1, 3 * (16 - lv.depths.astype(np.int64))))
+    lo = keys.min(axis=0) if keys.shape[0] else np.zeros(3, np.int64)
+    dims = (keys.max(axis=0) - lo + 1) if keys.shape[0] else np.ones(3, np.int64)
+    grid = np.full(int(np.prod(dims)), UNKNOWN, dtype=np.uint8)
+    rel = keys - lo
+    grid[rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])] = voxel_states(values, backend.sensor.threshold_log)
+    return encode_packet(opts.robot, seq, stamp, opts.scheme, opts.codec, backend.params.resolution, keys[:0],
+                         grid, kind=KIND_KEYFRAME, box=(lo, dims))

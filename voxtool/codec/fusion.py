@@ -1,0 +1,147 @@
+"""Replaying and fusing packet logs: every voxel takes the state of its latest-stamped observation.
+
+Packets of all inputs are visited in (stamp, robot id, sequence) order (heapq.merge over inputs
+that must each be in stamp order); a voxel's final state is the one set by the last packet
+visited that mentions it. Keyframes set every cell of their box, unknown included.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from voxtool.codec.log import read_log
+from voxtool.codec.packet import OCCUPIED, UNKNOWN, Packet, decode_packet
+from voxtool.errors import FormatError, ParameterError
+from voxtool.geometry import Pose
+from voxtool.keys import coords_to_keys, keys_to_coords, morton_encode
+
+
+@dataclass
+class Extrinsic:
+    """Pose of a robot's map frame in the fused frame."""
+
+    pose: Pose
+
+    @classmethod
+    def parse(cls, text: str) -> tuple[str, Extrinsic]:
+        robot, _, rest = text.partition("=")
+        try:
+            v = [float(x) for x in rest.split(",")]
+        except ValueError:
+            v = []
+        if not robot or len(v) != 7:
+            raise ParameterError(f"--extrinsic '{text}' must read ROBOT=tx,ty,tz,qw,qx,qy,qz")
+        return robot, cls(Pose.from_quat(v[:3], v[3], v[4], v[5], v[6]))
+
+    def apply(self, keys: np.ndarray, resolution: float) -> np.ndarray:
+        """Move keys into the fused frame: exact for grid-aligned translations, else the voxel
+        centres are transformed and re-quantized (several voxels can land in one)."""
+        shift = self.pose.translation / resolution
+        if np.allclose(self.pose.rotation, np.eye(3), atol=1e-12) and np.allclose(shift, np.round(shift), atol=1e-9):
+            moved = keys.astype(np.int64) + np.round(shift).astype(np.int64)
+            if moved.size and (moved.min() < 0 or moved.max() > 65535):
+                raise ParameterError("extrinsic moves voxels outside the key range")
+            return moved.astype(np.uint16)
+        centres = keys_to_coords(keys, resolution)
+        return coords_to_keys(self.pose.apply(centres), resolution, what="transformed voxel")
+
+
+@dataclass
+class FusionResult:
+    codes: np.ndarray  # sorted Morton codes of known voxels
+    states: np.ndarray  # FREE / OCCUPIED (unknown dropped)
+    resolution: float
+    packets: int = 0
+    robots: dict = field(default_factory=dict)  # robot -> {packets, gaps, first/last stamp}
+    meta: dict = field(default_factory=dict)
+
+
+def _log_packets(path: Path):
+    meta, messages = read_log(path)
+    last: dict[str, int] = {}
+    for robot, log_time, blob in messages:
+        p = decode_packet(blob, f"{path}: packet of '{robot}'")
+        if p.stamp_ns < last.get(p.robot, -1):
+            raise FormatError(f"{path}: packet {p.seq} of robot '{p.robot}' (stamp {p.stamp_ns}) is older than the one before it")
+        last[p.robot] = p.stamp_ns
+        yield (p.stamp_ns, p.robot, p.seq), p
+    _ = meta
+
+
+def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, packets=None) -> FusionResult:
+    """Fuse logs (or given packets) by latest stamp; report sequence gaps per robot."""
+    extrinsics = extrinsics or {}
+    if packets is None:
+        streams = [_log_packets(Path(p)) for p in paths]
+        ordered = heapq.merge(*streams, key=lambda item: item[0])
+        packets = (p for _, p in ordered)
+    codes_parts, rank_parts, state_parts = [], [], []
+    robots: dict[str, dict] = {}
+    resolution = None
+    rank = 0
+    seen: dict[str, set] = {}
+    for p in packets:
+        if resolution is None:
+            resolution = p.resolution
+        elif p.resolution != resolution:
+            raise FormatError(f"packet {p.seq} of '{p.robot}' has resolution {p.resolution}, others {resolution}")
+        info = robots.setdefault(p.robot, {"packets": 0, "first_stamp_ns": p.stamp_ns, "seqs": set()})
+        seen_ids = seen.setdefault(p.robot, set())
+        info["packets"] += 1
+        info["last_stamp_ns"] = p.stamp_ns
+        if (p.seq, p.kind) in seen_ids:
+            continue  # duplicate delivery
+        seen_ids.add((p.seq, p.kind))
+        if p.kind == 0:
+            info["seqs"].add(p.seq)
+        keys = p.keys
+        if p.robot in extrinsics:
+            keys = extrinsics[p.robot].apply(keys, p.resolution)
+        codes_parts.append(morton_encode(keys))
+        state_parts.append(p.states)
+        rank_parts.append(np.full(keys.shape[0], rank, dtype=np.int64))
+        rank += 1
+    for robot, info in robots.items():
+        seqs = sorted(info.pop("seqs"))
+        missing = sorted(set(range(seqs[0], seqs[-1] + 1)) - set(seqs)) if seqs else []
+        info["gaps"] = missing
+    if not codes_parts:
+        return FusionResult(np.zeros(0, np.int64), np.zeros(0, np.uint8), resolution or 0.0, 0, robots)
+    codes = np.concatenate(codes_parts)
+    states = np.concatenate(state_parts)
+    ranks = np.concatenate(rank_parts)
+    order = np.lexsort((ranks, codes))  # by code, then by visiting order: the last one wins
+    codes, states = codes[order], states[order]
+    last = np.ones(codes.shape[0], dtype=bool)
+    last[:-1] = codes[1:] != codes[:-1]
+    codes, states = codes[last], states[last]
+    known = states != UNKNOWN
+    return FusionResult(codes[known], states[known], resolution, rank, robots)
+
+
+def fused_leaves(result: FusionResult, sensor):
+    """Leaves (one per voxel, max-likelihood log-odds) for a snapshot of a fused state map."""
+    from voxtool.maps.base import Leaves
+
+    values = np.where(result.states == OCCUPIED, np.float32(sensor.clamp_max_log), np.float32(sensor.clamp_min_log))
+    return Leaves(result.codes, np.full(result.codes.shape[0], 16, np.uint8), values.astype(np.float32))
+
+
+def save_state_map(path, result: FusionResult, info: dict) -> None:
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.io.mapfile import save_map
+    from voxtool.maps.octree import OctreeMap
+
+    sensor = SensorModel()
+    m = OctreeMap(MapParams(resolution=result.resolution or 0.1), sensor)
+    leaves = fused_leaves(result, sensor)
+    m.load_state({"leaf_codes": leaves.codes, "leaf_depths": leaves.depths, "leaf_values": leaves.values})
+    save_map(path, m, info)
+
+
+def packets_of(path: Path) -> list[Packet]:
+    return [p for _, p in _log_packets(path)]

@@ -1,0 +1,163 @@
+"""3D Hilbert order of the cells of a box.
+
+Construction (our choice, see formats/packet.md): Skilling's transpose algorithm ("Programming the
+Hilbert curve", 2004) over the power-of-two cube anchored at the box's minimum corner, keeping only
+the cells inside the box. `hilbert_index` is that algorithm, cell by cell (the reference);
+`box_order` walks the same curve recursively with a state table derived from it, skipping sub-cubes
+outside the box, so its cost is proportional to the box's volume.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from itertools import permutations
+
+import numpy as np
+from numba import njit
+
+
+def hilbert_index(x: int, y: int, z: int, bits: int) -> int:
+    """Skilling's AxestoTranspose, then the transposed bits interleaved (x first)."""
+    v = [int(x), int(y), int(z)]
+    m = 1 << (bits - 1) if bits > 0 else 0
+    q = m
+    while q > 1:
+        p = q - 1
+        for i in range(3):
+            if v[i] & q:
+                v[0] ^= p
+            else:
+                t = (v[0] ^ v[i]) & p
+                v[0] ^= t
+                v[i] ^= t
+        q >>= 1
+    for i in range(1, 3):
+        v[i] ^= v[i - 1]
+    t = 0
+    q = m
+    while q > 1:
+        if v[2] & q:
+            t ^= q - 1
+        q >>= 1
+    for i in range(3):
+        v[i] ^= t
+    h = 0
+    for level in range(bits - 1, -1, -1):
+        for i in range(3):
+            h = (h << 1) | ((v[i] >> level) & 1)
+    return h
+
+
+def _signed_perms():
+    for perm in permutations(range(3)):
+        for flips in range(8):
+            yield perm, tuple((flips >> i) & 1 for i in range(3))
+
+
+def _apply(t, c):
+    perm, flips = t
+    return tuple(c[perm[i]] ^ flips[i] for i in range(3))
+
+
+def _compose(a, b):
+    """a after b, as a signed permutation."""
+    return tuple(_apply(a, _apply(b, c)) for c in _CORNERS)
+
+
+_CORNERS = [((k >> 0) & 1, (k >> 1) & 1, (k >> 2) & 1) for k in range(8)]
+
+
+@lru_cache(maxsize=1)
+def state_tables() -> tuple[np.ndarray, np.ndarray]:
+    """(OCTANT[state, digit], NEXT[state, digit]) of the curve, derived from Skilling's index.
+
+    A state is the symmetry of the cube that maps the canonical curve onto a sub-curve; digit h
+    of a state visits octant OCTANT (x + 2y + 4z) and continues in state NEXT."""
+    order1 = sorted(_CORNERS, key=lambda c: hilbert_index(*c, 1))  # canonical 2x2x2 curve
+    cells2 = sorted(((x, y, z) for x in range(4) for y in range(4) for z in range(4)),
+                    key=lambda c: hilbert_index(*c, 2))
+    sub_maps = []
+    for h in range(8):
+        block = cells2[8 * h : 8 * h + 8]
+        octant = tuple(v >> 1 for v in block[0])
+        local = [tuple(v & 1 for v in c) for c in block]
+        assert all(tuple(v >> 1 for v in c) == octant for c in block)
+        assert octant == order1[h]
+        t = next(t for t in _signed_perms() if [_apply(t, c) for c in order1] == local)
+        sub_maps.append(t)
+    # states as the images of the 8 corners (a hashable signed permutation)
+    identity = tuple(_CORNERS)
+    states = {identity: 0}
+    queue = [identity]
+    octant_rows, next_rows = [], []
+    while queue:
+        s = queue.pop(0)
+        s_map = dict(zip(_CORNERS, s))
+        oct_row, next_row = [], []
+        for h in range(8):
+            c = s_map[order1[h]]
+            oct_row.append(c[0] + 2 * c[1] + 4 * c[2])
+            t_map = dict(zip(_CORNERS, [_apply(sub_maps[h], c0) for c0 in _CORNERS]))
+            child = tuple(s_map[t_map[c0]] for c0 in _CORNERS)
+            if child not in states:
+                states[child] = len(states)
+                queue.append(child)
+            next_row.append(states[child])
+        octant_rows.append(oct_row)
+        next_rows.append(next_row)
+    return np.array(octant_rows, dtype=np.int64), np.array(next_rows, dtype=np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _walk(dx, dy, dz, bits, octant, nxt, out):
+    """Nested index x + dx * (y + dy * z) of every in-box cell, in curve order."""
+    st_state = np.zeros(bits + 1, dtype=np.int64)
+    st_h = np.zeros(bits + 1, dtype=np.int64)
+    st_x = np.zeros(bits + 1, dtype=np.int64)
+    st_y = np.zeros(bits + 1, dtype=np.int64)
+    st_z = np.zeros(bits + 1, dtype=np.int64)
+    k = 0
+    if bits == 0:
+        out[0] = 0
+        return 1
+    lvl = 0  # stack depth; cube size at depth l is 2^(bits - l)
+    while lvl >= 0:
+        h = st_h[lvl]
+        if h == 8:
+            lvl -= 1
+            continue
+        st_h[lvl] = h + 1
+        o = octant[st_state[lvl], h]
+        half = 1 << (bits - lvl - 1)
+        x = st_x[lvl] + (o & 1) * half
+        y = st_y[lvl] + ((o >> 1) & 1) * half
+        z = st_z[lvl] + ((o >> 2) & 1) * half
+        if x >= dx or y >= dy or z >= dz:
+            continue  # sub-cube starts outside the box (the box is anchored at 0)
+        if half == 1:
+            out[k] = x + dx * (y + dy * z)
+            k += 1
+            continue
+        lvl += 1
+        st_state[lvl] = nxt[st_state[lvl - 1], h]
+        st_h[lvl] = 0
+        st_x[lvl] = x
+        st_y[lvl] = y
+        st_z[lvl] = z
+    return k
+
+
+def bits_for(dims) -> int:
+    m = max(int(d) for d in dims)
+    return max(0, int(m - 1).bit_length())
+
+
+@lru_cache(maxsize=8)
+def box_order(dx: int, dy: int, dz: int) -> np.ndarray:
+    """int64 nested indices of the box's cells in Hilbert order (cached for repeated box sizes)."""
+    octant, nxt = state_tables()
+    out = np.empty(dx * dy * dz, dtype=np.int64)
+    n = _walk(dx, dy, dz, bits_for((dx, dy, dz)), octant, nxt, out)
+    assert n == out.shape[0]
+    out.setflags(write=False)
+    return out

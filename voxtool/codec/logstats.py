@@ -1,0 +1,66 @@
+"""Bandwidth statistics of packet logs (`voxtool stats LOG.mcap`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from voxtool.codec.log import read_log
+from voxtool.codec.packet import HEADER, decode_packet
+
+
+def log_stats(path: str | Path) -> dict:
+    """Packets, bytes, average and 1-second-window maximum bandwidth per robot and in total,
+    compression ratio, bytes per changed voxel, and the ratio to the raw sensor bandwidth."""
+    path = Path(path)
+    meta, messages = read_log(path)
+    rows: dict[str, dict] = {}
+    stamps, sizes = [], []
+    for robot, _, blob in messages:
+        p = decode_packet(blob, f"{path}: packet of '{robot}'")
+        r = rows.setdefault(p.robot, {"packets": 0, "keyframes": 0, "bytes": 0, "raw_payload_bytes": 0,
+                                      "stored_payload_bytes": 0, "changed_voxels": 0, "stamps": [], "sizes": [],
+                                      "scheme": p.scheme, "codec": p.codec})
+        r["packets"] += 1
+        r["keyframes"] += int(p.kind == 1)
+        r["bytes"] += len(blob)
+        r["raw_payload_bytes"] += p.raw_size
+        r["stored_payload_bytes"] += p.stored_size
+        r["changed_voxels"] += int(p.keys.shape[0]) if p.kind == 0 else 0
+        r["stamps"].append(p.stamp_ns)
+        r["sizes"].append(len(blob))
+        stamps.append(p.stamp_ns)
+        sizes.append(len(blob))
+    out_robots = {}
+    for robot, r in rows.items():
+        m = meta.get(robot, {})
+        span = _span(m, r["stamps"])
+        bw = _bandwidth(np.array(r.pop("stamps")), np.array(r.pop("sizes")), span)
+        raw_bps = m.get("raw_sensor_bytes", 0) / span if span else None
+        r.update(bw)
+        r["duration_s"] = round(span, 6)
+        r["compression_ratio"] = round(r["raw_payload_bytes"] / max(r["stored_payload_bytes"], 1), 3)
+        r["bytes_per_changed_voxel"] = round(r["bytes"] / max(r["changed_voxels"], 1), 4)
+        r["raw_sensor_Bps"] = round(raw_bps, 1) if raw_bps else None
+        r["ratio_to_raw_sensor"] = round(r["avg_Bps"] / raw_bps, 6) if raw_bps else None
+        out_robots[robot] = r
+    total_span = max((_span(meta.get(k, {}), []) for k in rows), default=0.0) or 1.0
+    total = _bandwidth(np.array(stamps), np.array(sizes), total_span) if stamps else {"avg_Bps": 0, "max_Bps": 0}
+    return {"log": str(path), "packets": len(sizes), "bytes": int(sum(sizes)), "header_bytes": HEADER.size,
+            "total": total, "robots": out_robots}
+
+
+def _span(meta: dict, stamps: list[int]) -> float:
+    if "first_stamp_ns" in meta and "last_stamp_ns" in meta:
+        return max(meta["last_stamp_ns"] - meta["first_stamp_ns"], 1) / 1e9
+    return max((max(stamps) - min(stamps)) / 1e9, 1.0) if stamps else 1.0
+
+
+def _bandwidth(stamps: np.ndarray, sizes: np.ndarray, span: float) -> dict:
+    """Average over the log's span; maximum over 1 s windows aligned to the first packet."""
+    if stamps.size == 0:
+        return {"avg_Bps": 0.0, "max_Bps": 0.0}
+    bins = ((stamps - stamps.min()) // 1_000_000_000).astype(np.int64)
+    per_second = np.bincount(bins, weights=sizes)
+    return {"avg_Bps": round(float(sizes.sum()) / span, 1), "max_Bps": round(float(per_second.max()), 1)}

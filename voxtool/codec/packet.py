@@ -1,0 +1,265 @@
+"""Map-change packets: bytes on the wire (specified in formats/packet.md).
+
+A packet = 96-byte little-endian header + payload (compressed per `codec`). Schemes:
+  hilbert / nested  box of changed voxels, 2 bits per cell (0 free, 1 occupied, 2 unknown,
+                    3 unchanged) in Hilbert or x-fastest nested order, 4 cells per byte
+  racer             changed voxels as addresses (linear index in the map box, minimum whole byte
+                    width) + 2-bit states
+  occupied          newly occupied voxels of the last k frames (ring buffer), keys as 3 x uint16
+Kind 0 is a delta (unchanged cells allowed), kind 1 a full-state keyframe of a box (no unchanged).
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+import zstandard
+
+from voxtool.errors import FormatError
+
+MAGIC = b"VXPK"
+VERSION = 1
+SCHEMES = ("hilbert", "nested", "racer", "occupied")
+CODECS = ("none", "zstd", "zlib")
+KIND_DELTA, KIND_KEYFRAME = 0, 1
+FREE, OCCUPIED, UNKNOWN, UNCHANGED = 0, 1, 2, 3
+HEADER = struct.Struct("<4sBBBB16sIqd3d3H3HIIII")
+MAX_CELLS = 1 << 31  # a box larger than this is refused before anything is allocated
+MAX_RAW = 1 << 30  # 1 GiB of uncompressed payload at most
+ZSTD_LEVEL = 3
+ZLIB_LEVEL = 6
+
+
+@dataclass
+class Packet:
+    """A decoded packet: header fields plus the voxels it sets (Morton codes, states)."""
+
+    robot: str
+    seq: int
+    stamp_ns: int
+    scheme: str
+    codec: str
+    kind: int
+    resolution: float
+    map_origin: tuple[float, float, float]
+    box_min: tuple[int, int, int]
+    box_dims: tuple[int, int, int]
+    count: int
+    raw_size: int
+    stored_size: int
+    keys: np.ndarray = field(repr=False)  # (N, 3) uint16 keys of the voxels the packet sets
+    states: np.ndarray = field(repr=False)  # (N,) uint8: FREE / OCCUPIED / UNKNOWN
+
+    @property
+    def wire_bytes(self) -> int:
+        return HEADER.size + self.stored_size
+
+
+def pack_2bit(codes: np.ndarray) -> bytes:
+    """Four 2-bit codes per byte, cell i in bits 2*(i % 4) of byte i // 4; padding cells = 3."""
+    n = codes.shape[0]
+    padded = np.full(((n + 3) // 4) * 4, UNCHANGED, dtype=np.uint8)
+    padded[:n] = codes
+    q = padded.reshape(-1, 4)
+    return (q[:, 0] | (q[:, 1] << 2) | (q[:, 2] << 4) | (q[:, 3] << 6)).astype(np.uint8).tobytes()
+
+
+def unpack_2bit(data: bytes, n: int) -> np.ndarray:
+    b = np.frombuffer(data, dtype=np.uint8)
+    out = np.empty((b.shape[0], 4), dtype=np.uint8)
+    for k in range(4):
+        out[:, k] = (b >> (2 * k)) & 3
+    return out.reshape(-1)[:n]
+
+
+def _compress(raw: bytes, codec: str) -> bytes:
+    if codec == "zstd":
+        return zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(raw)
+    if codec == "zlib":
+        return zlib.compress(raw, ZLIB_LEVEL)
+    return raw
+
+
+def _decompress(stored: bytes, codec: str, raw_size: int, where: str) -> bytes:
+    try:
+        if codec == "zstd":
+            data = zstandard.ZstdDecompressor().decompress(stored, max_output_size=raw_size) if raw_size else b""
+        elif codec == "zlib":
+            d = zlib.decompressobj()
+            data = d.decompress(stored, raw_size)
+            if d.unconsumed_tail:
+                raise FormatError(f"{where}: payload decompresses to more than the declared {raw_size} bytes")
+        else:
+            data = stored
+    except (zstandard.ZstdError, zlib.error) as err:
+        raise FormatError(f"{where}: payload does not decompress ({err})") from err
+    if len(data) != raw_size:
+        raise FormatError(f"{where}: payload is {len(data)} bytes, header declares {raw_size}")
+    return data
+
+
+def address_width(dims) -> int:
+    """Minimum whole bytes to address every cell of a box (the paper's Fig. 5 rule for RACER)."""
+    cells = int(np.prod(np.asarray(dims, dtype=np.int64)))
+    return max(1, (max(cells - 1, 1).bit_length() + 7) // 8)
+
+
+def _cell_order(scheme: str, dims) -> np.ndarray | None:
+    if scheme == "hilbert":
+        from voxtool.codec.hilbert import box_order
+
+        return box_order(int(dims[0]), int(dims[1]), int(dims[2]))
+    return None  # nested: the natural x-fastest order
+
+
+def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, resolution: float,
+                  keys: np.ndarray, states: np.ndarray, kind: int = KIND_DELTA,
+                  box: tuple[np.ndarray, np.ndarray] | None = None,
+                  map_origin=(0.0, 0.0, 0.0), frames: list[tuple[int, np.ndarray]] | None = None) -> bytes:
+    """Encode voxels (uint16 keys, states) as one packet.
+
+    hilbert/nested: `box` = (min key, dims) defaults to the keys' bounding box; a keyframe must
+    give `states` for every cell of the box (keys then ignored, states in nested order).
+    racer: `box` is the map's address space. occupied: `frames` = [(frame seq, keys)]."""
+    if scheme not in SCHEMES or codec not in CODECS:
+        raise ValueError(f"unknown scheme/codec {scheme}/{codec}")
+    keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
+    states = np.asarray(states, dtype=np.uint8)
+    if scheme == "occupied":
+        frames = frames or []
+        parts = []
+        for fseq, fkeys in frames:
+            fk = np.asarray(fkeys, dtype="<u2").reshape(-1, 3)
+            parts.append(struct.pack("<II", fseq, fk.shape[0]) + fk.tobytes())
+        raw = b"".join(parts)
+        lo, dims, count = np.zeros(3, np.int64), np.zeros(3, np.int64), len(frames)
+    else:
+        if box is None:
+            lo = keys.min(axis=0) if keys.shape[0] else np.zeros(3, np.int64)
+            dims = (keys.max(axis=0) - lo + 1) if keys.shape[0] else np.zeros(3, np.int64)
+        else:
+            lo, dims = np.asarray(box[0], np.int64), np.asarray(box[1], np.int64)
+        cells = int(np.prod(dims))
+        if scheme == "racer":
+            rel = keys - lo
+            addr = rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])
+            width = address_width(dims)
+            a = addr.astype("<u8").view(np.uint8).reshape(-1, 8)[:, :width]
+            raw = a.tobytes() + pack_2bit(states)
+            count = keys.shape[0]
+        else:
+            if kind == KIND_KEYFRAME:
+                grid = states
+                if grid.shape[0] != cells:
+                    raise ValueError("keyframe states must cover every cell of the box")
+            else:
+                grid = np.full(cells, UNCHANGED, dtype=np.uint8)
+                rel = keys - lo
+                grid[rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])] = states
+            order = _cell_order(scheme, dims)
+            raw = pack_2bit(grid[order] if order is not None else grid)
+            count = int(keys.shape[0]) if kind == KIND_DELTA else cells
+    stored = _compress(raw, codec)
+    name = robot.encode()[:16]
+    head = HEADER.pack(MAGIC, VERSION, kind, SCHEMES.index(scheme), CODECS.index(codec), name, seq, stamp_ns,
+                       resolution, *map(float, map_origin), *map(int, lo), *map(int, dims), count, len(raw),
+                       len(stored), 0)
+    crc = zlib.crc32(stored, zlib.crc32(head[:-4]))
+    return head[:-4] + struct.pack("<I", crc) + stored
+
+
+def decode_packet(blob: bytes, where: str = "packet") -> Packet:
+    """Parse and decode one packet, checking magic, version, CRC and every size before use."""
+    if len(blob) < HEADER.size:
+        raise FormatError(f"{where}: {len(blob)} bytes is shorter than the {HEADER.size}-byte packet header")
+    f = HEADER.unpack_from(blob, 0)
+    magic, version, kind, scheme_i, codec_i, name, seq, stamp, res = f[:9]
+    origin, lo, dims = f[9:12], f[12:15], f[15:18]
+    count, raw_size, stored_size, crc = f[18:22]
+    if magic != MAGIC:
+        raise FormatError(f"{where}: not a voxtool packet (bad magic)")
+    if version != VERSION:
+        raise FormatError(f"{where}: packet version {version} is not supported (this voxtool reads {VERSION})")
+    if scheme_i >= len(SCHEMES) or codec_i >= len(CODECS) or kind not in (KIND_DELTA, KIND_KEYFRAME):
+        raise FormatError(f"{where}: unknown scheme {scheme_i}, codec {codec_i} or kind {kind}")
+    if HEADER.size + stored_size != len(blob):
+        raise FormatError(f"{where}: declares {stored_size} payload bytes, holds {len(blob) - HEADER.size}")
+    if zlib.crc32(blob[HEADER.size:], zlib.crc32(blob[: HEADER.size - 4])) != crc:
+        raise FormatError(f"{where}: CRC mismatch")
+    if raw_size > MAX_RAW or not (res > 0 and np.isfinite(res)):
+        raise FormatError(f"{where}: declared payload of {raw_size} bytes or resolution {res} out of range")
+    scheme, codec = SCHEMES[scheme_i], CODECS[codec_i]
+    cells = int(np.prod(np.asarray(dims, dtype=np.int64)))
+    lo_a = np.asarray(lo, dtype=np.int64)
+    dims_a = np.asarray(dims, dtype=np.int64)
+    if scheme in ("hilbert", "nested", "racer"):
+        if cells > MAX_CELLS or np.any(lo_a + dims_a > 65536):
+            raise FormatError(f"{where}: box {dims} at {lo} exceeds the key range or {MAX_CELLS} cells")
+    if scheme in ("hilbert", "nested") and raw_size != (cells + 3) // 4:
+        raise FormatError(f"{where}: box of {cells} cells needs {(cells + 3) // 4} bytes, header declares {raw_size}")
+    if scheme == "racer":
+        width = address_width(dims_a)
+        if raw_size != count * width + (count + 3) // 4 or count > cells:
+            raise FormatError(f"{where}: {count} RACER entries do not fit {raw_size} bytes")
+    raw = _decompress(blob[HEADER.size:], codec, raw_size, where)
+    if scheme in ("hilbert", "nested"):
+        codes = unpack_2bit(raw, cells)
+        order = _cell_order(scheme, dims_a)
+        grid = np.empty(cells, dtype=np.uint8)
+        if order is not None:
+            grid[order] = codes
+        else:
+            grid = codes
+        if kind == KIND_KEYFRAME and np.any(grid == UNCHANGED):
+            raise FormatError(f"{where}: keyframe holds 'unchanged' cells")
+        idx = np.flatnonzero(grid != UNCHANGED)
+        if kind == KIND_DELTA and idx.shape[0] != count:
+            raise FormatError(f"{where}: {idx.shape[0]} changed cells, header declares {count}")
+        states = grid[idx]
+        keys = np.stack([idx % dims_a[0], (idx // dims_a[0]) % dims_a[1], idx // (dims_a[0] * dims_a[1])], axis=1) + lo_a
+    elif scheme == "racer":
+        width = address_width(dims_a)
+        a = np.zeros((count, 8), dtype=np.uint8)
+        a[:, :width] = np.frombuffer(raw[: count * width], dtype=np.uint8).reshape(count, width)
+        addr = a.view("<u8").reshape(-1).astype(np.int64)
+        if np.any(addr >= cells):
+            raise FormatError(f"{where}: RACER address outside the map box")
+        states = unpack_2bit(raw[count * width :], count)
+        if np.any(states == UNCHANGED):
+            raise FormatError(f"{where}: RACER entry with state 'unchanged'")
+        keys = np.stack([addr % dims_a[0], (addr // dims_a[0]) % dims_a[1], addr // (dims_a[0] * dims_a[1])], axis=1) + lo_a
+    else:
+        keys_list, pos = [], 0
+        for _ in range(count):
+            if pos + 8 > len(raw):
+                raise FormatError(f"{where}: occupied frame list truncated")
+            _fseq, n = struct.unpack_from("<II", raw, pos)
+            pos += 8
+            if pos + 6 * n > len(raw):
+                raise FormatError(f"{where}: occupied frame declares {n} voxels beyond the payload")
+            keys_list.append(np.frombuffer(raw, dtype="<u2", count=3 * n, offset=pos).reshape(n, 3).astype(np.int64))
+            pos += 6 * n
+        if pos != len(raw):
+            raise FormatError(f"{where}: {len(raw) - pos} trailing payload bytes")
+        keys = np.concatenate(keys_list) if keys_list else np.zeros((0, 3), np.int64)
+        states = np.full(keys.shape[0], OCCUPIED, dtype=np.uint8)
+    if np.any(states > UNKNOWN):
+        raise FormatError(f"{where}: invalid voxel state")
+    return Packet(name.rstrip(b"\0").decode(errors="replace"), seq, stamp, scheme, codec, kind, res, tuple(origin),
+                  tuple(lo), tuple(dims), count, raw_size, stored_size, keys.astype(np.uint16), states)
+
+
+def occupied_frames(blob: bytes) -> list[tuple[int, np.ndarray]]:
+    """(frame seq, keys) of an `occupied` packet's ring buffer, for receivers that dedupe frames."""
+    p = HEADER.unpack_from(blob, 0)
+    raw = _decompress(blob[HEADER.size:], CODECS[p[4]], p[19], "packet")
+    out, pos = [], 0
+    for _ in range(p[18]):
+        fseq, n = struct.unpack_from("<II", raw, pos)
+        pos += 8
+        out.append((fseq, np.frombuffer(raw, dtype="<u2", count=3 * n, offset=pos).reshape(n, 3)))
+        pos += 6 * n
+    return out
