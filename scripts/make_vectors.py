@@ -39,5 +39,35 @@ def main() -> None:
         (OUT / f"{name}.json").write_text(json.dumps(describe(base, arrays), indent=1) + "\n")
 
 
+def packets() -> None:
+    from voxtool.codec.packet import KIND_KEYFRAME, decode_packet, encode_packet
+
+    keys = np.array([[32768, 32768, 32768], [32769, 32768, 32768], [32768, 32770, 32769]])
+    states = np.array([0, 1, 2], np.uint8)
+    cases = {
+        "packet_hilbert": dict(scheme="hilbert", keys=keys, states=states),
+        "packet_nested": dict(scheme="nested", keys=keys, states=states),
+        "packet_racer": dict(scheme="racer", keys=keys, states=states,
+                             box=(np.array([32768, 32768, 32768]), np.array([4, 4, 4]))),
+        "packet_keyframe": dict(scheme="hilbert", keys=keys[:0], states=np.array([0, 1, 2, 0, 1, 1, 0, 2], np.uint8),
+                                kind=KIND_KEYFRAME, box=(np.array([100, 200, 300]), np.array([2, 2, 2]))),
+        "packet_occupied": dict(scheme="occupied", keys=keys[:0], states=states[:0],
+                                frames=[(7, keys[:2]), (8, keys[2:])]),
+    }
+    for name, kw in cases.items():
+        blob = encode_packet("golden", 3, 1_700_000_000_000_000_000, codec="none", resolution=0.1, **kw)
+        p = decode_packet(blob)
+        desc = {"encode": {k: (v.tolist() if isinstance(v, np.ndarray) else
+                               [x.tolist() for x in v] if k == "box" else
+                               [[f, k2.tolist()] for f, k2 in v] if k == "frames" else v)
+                           for k, v in kw.items()},
+                "decoded": {"robot": p.robot, "seq": p.seq, "stamp_ns": p.stamp_ns, "scheme": p.scheme, "codec": p.codec,
+                            "kind": p.kind, "box_min": list(p.box_min), "box_dims": list(p.box_dims), "count": p.count,
+                            "voxels": sorted([*map(int, k), int(s)] for k, s in zip(p.keys, p.states))}}
+        (OUT / f"{name}.bin").write_bytes(blob)
+        (OUT / f"{name}.json").write_text(json.dumps(desc, indent=1) + "\n")
+
+
 if __name__ == "__main__":
     main()
+    packets()

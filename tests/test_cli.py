@@ -237,3 +237,52 @@ def test_cache_bench_on_sample_reports_consistent_rows():
         assert 0 < r["hit_ratio"] < 1
         assert r["written_to_octree"] < r["voxel_updates"]
         assert len(r["hit_ratio_per_scan"]) == 5
+
+
+def test_encode_decode_merge_stats_on_the_sample(tmp_path, sample_map):
+    built, stats = sample_map
+    log = tmp_path / "r1.mcap"
+    code, text = run("encode", "--sample", "-o", log, "--robot", "r1", "--json", "--no-progress")
+    assert code == 0, text
+    enc = json.loads(text)
+    assert enc["packets"] > 1 and enc["raw_sensor_bytes"] > 0
+    code, text = run("stats", log, "--json")
+    assert code == 0, text
+    st = json.loads(text)["robots"]["r1"]
+    assert st["packets"] == enc["packets"] and st["max_Bps"] > 0 and st["compression_ratio"] > 1
+    out = tmp_path / "decoded.vxm"
+    assert run("decode", log, "-o", out)[0] == 0
+    code, text = run("stats", out, "--json")
+    decoded = json.loads(text)
+    assert decoded["occupied_voxels"] == stats["occupied_voxels"] and decoded["free_voxels"] == stats["free_voxels"]
+    # a split stream fuses, and the simulation under loss matches the lossless fusion
+    a, b = tmp_path / "a.mcap", tmp_path / "b.mcap"
+    assert run("encode", "--sample", "-o", a, "--robot", "a", "--stop", "3")[0] == 0
+    assert run("encode", "--sample", "-o", b, "--robot", "b", "--start", "3")[0] == 0
+    code, text = run("merge", a, b, "-o", tmp_path / "ab.vxm", "--simulate-loss", "0.3", "--seed", "2", "--json")
+    assert code == 0, text
+    merged = json.loads(text)
+    assert merged["simulation"]["equal_to_lossless"] and merged["simulation"]["lost"] > 0
+    assert set(merged["robots"]) == {"a", "b"} and all(not r["gaps"] for r in merged["robots"].values())
+    code, text = run("decode", a, "--json")
+    assert code == 0 and json.loads(text)[0]["robot"] == "a"
+
+
+def test_bad_packet_logs_fail_cleanly(tmp_path):
+    log = tmp_path / "r.mcap"
+    assert run("encode", "--sample", "-o", log, "--stop", "1")[0] == 0
+    blob = log.read_bytes()
+    cases = {"trunc.mcap": blob[: len(blob) // 2], "junk.mcap": b"\x89MCAP0\r\n" + b"\0" * 64}
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        for args in (["decode", tmp_path / name, "-o", tmp_path / f"{name}.vxm"], ["stats", tmp_path / name]):
+            code, text = run(*args)
+            assert code == 5 and "voxtool: error:" in text and name in text, (name, text)
+        assert not (tmp_path / f"{name}.vxm").exists()
+    # a PointCloud2 bag is not a packet log
+    from ros2_writer import write_mcap
+
+    scans = [(pts, o, yaw_quat(yaw)) for pts, o, yaw in box_scene(1, 10, seed=1)]
+    write_mcap(tmp_path / "bag.mcap", scans)
+    code, text = run("stats", tmp_path / "bag.mcap")
+    assert code == 5 and "not a voxtool packet log" in text

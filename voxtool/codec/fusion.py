@@ -61,15 +61,14 @@ class FusionResult:
 
 
 def _log_packets(path: Path):
-    meta, messages = read_log(path)
+    _, messages = read_log(path)
     last: dict[str, int] = {}
-    for robot, log_time, blob in messages:
+    for robot, _, blob in messages:
         p = decode_packet(blob, f"{path}: packet of '{robot}'")
         if p.stamp_ns < last.get(p.robot, -1):
             raise FormatError(f"{path}: packet {p.seq} of robot '{p.robot}' (stamp {p.stamp_ns}) is older than the one before it")
         last[p.robot] = p.stamp_ns
         yield (p.stamp_ns, p.robot, p.seq), p
-    _ = meta
 
 
 def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, packets=None) -> FusionResult:
@@ -105,7 +104,7 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
         state_parts.append(p.states)
         rank_parts.append(np.full(keys.shape[0], rank, dtype=np.int64))
         rank += 1
-    for robot, info in robots.items():
+    for info in robots.values():
         seqs = sorted(info.pop("seqs"))
         missing = sorted(set(range(seqs[0], seqs[-1] + 1)) - set(seqs)) if seqs else []
         info["gaps"] = missing

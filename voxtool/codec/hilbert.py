@@ -152,9 +152,25 @@ def bits_for(dims) -> int:
     return max(0, int(m - 1).bit_length())
 
 
-@lru_cache(maxsize=8)
+CACHE_CELLS = 1 << 20  # orders of boxes up to this size are cached (8 MiB each, 16 kept)
+
+
 def box_order(dx: int, dy: int, dz: int) -> np.ndarray:
-    """int64 nested indices of the box's cells in Hilbert order (cached for repeated box sizes)."""
+    """int64 nested indices of the box's cells in Hilbert order (small boxes cached)."""
+    if dx * dy * dz <= CACHE_CELLS:
+        return _cached_order(dx, dy, dz)
+    return _order(dx, dy, dz)
+
+
+@lru_cache(maxsize=16)
+def _cached_order(dx: int, dy: int, dz: int) -> np.ndarray:
+    return _order(dx, dy, dz)
+
+
+box_order.cache_clear = _cached_order.cache_clear  # type: ignore[attr-defined]
+
+
+def _order(dx: int, dy: int, dz: int) -> np.ndarray:
     octant, nxt = state_tables()
     out = np.empty(dx * dy * dz, dtype=np.int64)
     n = _walk(dx, dy, dz, bits_for((dx, dy, dz)), octant, nxt, out)

@@ -1,0 +1,138 @@
+"""Map-change packet bandwidth: the paper's Fig. 5 sweep and real streams, per scheme and codec.
+
+    python benchmarks/bench_packets.py fig5 [--samples 10]        # synthetic OGMs, hilbert vs RACER bytes
+    python benchmarks/bench_packets.py streams [--data ../shared/data]  # encode real streams, bandwidth table
+    python benchmarks/bench_packets.py throughput                 # encode/decode cells per second
+
+Prints tables and writes bench-results/packets_<mode>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+OUT = Path("bench-results")
+
+
+def fig5(samples: int) -> dict:
+    """OGM of N voxels (a near-cubic box), a ratio r of voxels changed (half free, half occupied)
+    at random positions; hilbert packet bytes (zlib as the paper, and zstd) vs RACER's
+    changed x address-bytes (the paper's rule for its baseline)."""
+    from voxtool.codec.packet import address_width, encode_packet
+
+    rows = []
+    rng = np.random.default_rng(0)
+    for n_vox in (10**4, 10**5, 10**6, 10**7):
+        side = round(n_vox ** (1 / 3))
+        dims = np.array([side, side, max(1, n_vox // (side * side))])
+        cells = int(np.prod(dims))
+        width = address_width(dims)
+        for ratio in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 0.5):
+            changed = max(1, int(round(ratio * cells)))
+            sizes = {"zlib": [], "zstd": []}
+            for _ in range(samples):
+                idx = rng.choice(cells, changed, replace=False)
+                keys = np.stack([idx % dims[0], (idx // dims[0]) % dims[1], idx // (dims[0] * dims[1])], axis=1) + 1000
+                states = (rng.random(changed) < 0.5).astype(np.uint8)
+                for codec in sizes:
+                    sizes[codec].append(len(encode_packet("r", 0, 0, "hilbert", codec, 0.1, keys, states,
+                                                          box=(np.full(3, 1000), dims))))
+            racer = changed * width
+            rows.append({"ogm_voxels": cells, "changed_ratio": ratio, "changed": changed, "racer_bytes": racer,
+                         "hilbert_zlib_bytes": float(np.mean(sizes["zlib"])), "hilbert_zstd_bytes": float(np.mean(sizes["zstd"])),
+                         "racer_over_hilbert_zlib": round(racer / np.mean(sizes["zlib"]), 3)})
+    print(f"{'OGM voxels':>10} {'ratio':>7} {'changed':>9} {'RACER B':>10} {'hilbert zlib B':>14} {'hilbert zstd B':>14} {'RACER/ours':>10}")
+    for r in rows:
+        print(f"{r['ogm_voxels']:>10} {r['changed_ratio']:>7g} {r['changed']:>9} {r['racer_bytes']:>10} "
+              f"{r['hilbert_zlib_bytes']:>14.0f} {r['hilbert_zstd_bytes']:>14.0f} {r['racer_over_hilbert_zlib']:>10.2f}")
+    return {"samples": samples, "rows": rows}
+
+
+STREAMS = [("quick_shack", "quick_shack/quick_shack.mcap", 0.1), ("kaist03", "kaist03/kaist03_21scans.mcap", 0.2)]
+SETTINGS = [("hilbert", "zstd"), ("hilbert", "zlib"), ("nested", "zstd"), ("nested", "zlib"), ("racer", "none"),
+            ("racer", "zstd"), ("occupied", "zstd")]
+
+
+def streams(data: Path) -> dict:
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, rel, res in STREAMS:
+            src = data / rel
+            if not src.exists():
+                print(f"skip {name}: {src} absent", file=sys.stderr)
+                continue
+            for scheme, codec in SETTINGS:
+                log = Path(tmp) / f"{name}_{scheme}_{codec}.mcap"
+                cmd = ["voxtool", "encode", str(src), "-o", str(log), "--resolution", str(res), "--scheme", scheme,
+                       "--codec", codec, "--json", "--no-progress"]
+                enc = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
+                st = json.loads(subprocess.run(["voxtool", "stats", str(log), "--json"], check=True,
+                                               capture_output=True, text=True).stdout)
+                r = st["robots"]["r1"]
+                rows.append({"dataset": name, "resolution": res, "scheme": scheme, "codec": codec,
+                             "packets": r["packets"], "bytes": r["bytes"], "avg_Bps": r["avg_Bps"], "max_Bps": r["max_Bps"],
+                             "bytes_per_changed_voxel": r["bytes_per_changed_voxel"],
+                             "compression_ratio": r["compression_ratio"], "raw_sensor_Bps": r["raw_sensor_Bps"],
+                             "ratio_to_raw_sensor": r["ratio_to_raw_sensor"], "encode_cells_per_s": enc["encode_cells_per_s"]})
+    print(f"{'dataset':<12} {'scheme':<9} {'codec':<5} {'packets':>7} {'avg B/s':>11} {'max B/s':>11} {'B/changed':>9} {'x raw':>9} {'vs racer avg':>12} {'vs racer max':>12}")
+    for r in rows:
+        racer = next(x for x in rows if x["dataset"] == r["dataset"] and x["scheme"] == "racer" and x["codec"] == "none")
+        r["racer_over_this_avg"] = round(racer["avg_Bps"] / r["avg_Bps"], 2)
+        r["racer_over_this_max"] = round(racer["max_Bps"] / r["max_Bps"], 2)
+        print(f"{r['dataset']:<12} {r['scheme']:<9} {r['codec']:<5} {r['packets']:>7} {r['avg_Bps']:>11.0f} {r['max_Bps']:>11.0f} "
+              f"{r['bytes_per_changed_voxel']:>9.3f} {r['ratio_to_raw_sensor']:>9.4f} {r['racer_over_this_avg']:>12.2f} {r['racer_over_this_max']:>12.2f}")
+    return {"rows": rows}
+
+
+def throughput() -> dict:
+    from voxtool.codec.hilbert import box_order
+    from voxtool.codec.packet import decode_packet, encode_packet
+
+    rng = np.random.default_rng(1)
+    rows = []
+    for dims in ((200, 200, 100), (400, 300, 90), (512, 512, 64)):
+        cells = int(np.prod(dims))
+        idx = rng.choice(cells, cells // 100, replace=False)
+        keys = np.stack([idx % dims[0], (idx // dims[0]) % dims[1], idx // (dims[0] * dims[1])], axis=1)
+        states = rng.integers(0, 2, idx.shape[0]).astype(np.uint8)
+        box = (np.zeros(3, np.int64), np.array(dims))
+        encode_packet("r", 0, 0, "hilbert", "zstd", 0.1, keys, states, box=box)  # JIT
+        for cached in (False, True):
+            if not cached:
+                box_order.cache_clear()
+            t0 = time.perf_counter()
+            blob = encode_packet("r", 0, 0, "hilbert", "zstd", 0.1, keys, states, box=box)
+            t1 = time.perf_counter()
+            if not cached:
+                box_order.cache_clear()
+            decode_packet(blob)
+            t2 = time.perf_counter()
+            rows.append({"dims": dims, "cells": cells, "order_cached": cached,
+                         "encode_Mcells_per_s": round(cells / (t1 - t0) / 1e6, 1),
+                         "decode_Mcells_per_s": round(cells / (t2 - t1) / 1e6, 1)})
+    for r in rows:
+        print(r)
+    return {"rows": rows}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("mode", choices=["fig5", "streams", "throughput"])
+    ap.add_argument("--samples", type=int, default=10)
+    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
+    args = ap.parse_args()
+    result = {"fig5": lambda: fig5(args.samples), "streams": lambda: streams(Path(args.data)), "throughput": throughput}[args.mode]()
+    OUT.mkdir(exist_ok=True)
+    (OUT / f"packets_{args.mode}.json").write_text(json.dumps(result, indent=2, default=str))
+
+
+if __name__ == "__main__":
+    main()
