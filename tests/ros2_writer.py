@@ -69,7 +69,8 @@ def odom_msg(ns: int, t, q_wxyz) -> dict:
     }
 
 
-def write_mcap(path, scans, mode: str = "tf", cloud_overrides: dict | None = None, skip_tf: bool = False) -> None:
+def write_mcap(path, scans, mode: str = "tf", cloud_overrides: dict | None = None, skip_tf: bool = False,
+               stamps_descending: bool = False) -> None:
     """scans: [(sensor points, origin, q_wxyz)]. mode 'tf': map->odom (identity) ->lidar chain;
     'odom': an Odometry topic /odom gives the lidar pose."""
     from mcap_ros2.writer import Writer
@@ -81,9 +82,11 @@ def write_mcap(path, scans, mode: str = "tf", cloud_overrides: dict | None = Non
         s_odom = w.register_msgdef("nav_msgs/msg/Odometry", ODOMETRY)
         for i, (pts, origin, q) in enumerate(scans):
             ns = 1_000_000_000 + i * 100_000_000
+            # header stamps going backwards while log times go forwards: a broken /tf
+            tf_ns = 1_000_000_000 + (len(scans) - i) * 100_000_000 if stamps_descending else ns
             if mode == "tf" and not skip_tf:
-                w.write_message("/tf", s_tf, tf_msg("map", "odom", ns, (0, 0, 0), (1, 0, 0, 0)), ns, ns)
-                w.write_message("/tf", s_tf, tf_msg("odom", "lidar", ns, origin, q), ns, ns)
+                w.write_message("/tf", s_tf, tf_msg("map", "odom", tf_ns, (0, 0, 0), (1, 0, 0, 0)), ns, ns)
+                w.write_message("/tf", s_tf, tf_msg("odom", "lidar", tf_ns, origin, q), ns, ns)
             elif mode == "odom":
                 w.write_message("/odom", s_odom, odom_msg(ns, origin, q), ns, ns)
             msg = cloud_msg(pts, ns, "lidar")

@@ -120,7 +120,7 @@ BAD_CASES = {
     "empty directory": (lambda d: _empty(d), 3, "directory must hold .pcd or .ply scans"),
     "pose rows": (lambda d: _poses(d, 1), 3, "pose file has 1 poses for 2 scans"),
     "mcap without the topic": (lambda d: _mcap(d), 3, "topic '/nope' is not a PointCloud2 topic"),
-    "mcap without transform": (lambda d: _mcap(d, skip_tf=True), 3, "no transform chain from 'map' to 'lidar'"),
+    "mcap without transform": (lambda d: _mcap(d, skip_tf=True), 3, "no transform chain from 'nowhere' to 'lidar'"),
     "truncated mcap": (lambda d: _truncate(_mcap(d), 700), 3, "s.mcap"),
     "mcap cloud row_step lies": (lambda d: _mcap(d, cloud_overrides={"row_step": 10**6}), 3,
                                  "data has 1200 bytes, row_step x height needs 1000000"),
@@ -190,6 +190,8 @@ def test_bad_input_one_line_error_exit_code_no_output(tmp_path, case):
         args += ["--poses", src_dir / "p.txt"]
     if case == "mcap without the topic":
         args += ["--topic", "/nope"]
+    if case == "mcap without transform":
+        args += ["--world-frame", "nowhere"]
     proc = subprocess.run([sys.executable, "-m", "voxtool.cli", *map(str, args)], capture_output=True, text=True,
                           env={**os.environ, "PYTHONWARNINGS": "ignore"})
     assert proc.returncode == exit_code, proc.stderr

@@ -88,7 +88,7 @@ def scan_options(func):
         click.option("--no-viewpoint", is_flag=True,
                      help="PCD points are already in the world frame; take only the ray origin from VIEWPOINT/--poses."),
         click.option("--topic", help="MCAP PointCloud2 topic (default: the only one)."),
-        click.option("--world-frame", default="map", show_default=True, help="MCAP /tf frame the map is built in."),
+        click.option("--world-frame", default=None, help="MCAP /tf frame the map is built in (default: the root of the /tf tree above the cloud's frame)."),
         click.option("--pose-topic", help="MCAP Odometry/PoseStamped topic giving the sensor pose (instead of /tf)."),
         click.option("--start", default=0, show_default=True, type=int, help="First scan index to use."),
         click.option("--stop", default=None, type=int, help="Stop before this scan index."),

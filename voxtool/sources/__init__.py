@@ -23,7 +23,7 @@ class SourceOptions:
     poses: str | None = None  # pose file (TUM / indexed TUM / KITTI)
     no_viewpoint: bool = False  # PCD points are world-frame; only the origin comes from a pose
     topic: str | None = None
-    world_frame: str = "map"
+    world_frame: str | None = None  # None: the root of the /tf tree above the cloud's frame
     pose_topic: str | None = None
     start: int = 0
     stop: int | None = None

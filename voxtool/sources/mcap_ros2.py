@@ -90,7 +90,7 @@ def decode_pointcloud2(path: Path, msg, index: int) -> np.ndarray:
 class McapCloudSource:
     """Streams (sensor points, pose, stamp, raw bytes) from a ROS 2 MCAP file."""
 
-    def __init__(self, path: str | Path, topic: str | None, world_frame: str, pose_topic: str | None) -> None:
+    def __init__(self, path: str | Path, topic: str | None, world_frame: str | None, pose_topic: str | None) -> None:
         from mcap.exceptions import McapError
         from mcap.reader import make_reader
 
@@ -151,8 +151,26 @@ class McapCloudSource:
         except (McapError, ValueError, EOFError) as err:
             raise SourceError(f"{self.path}: corrupt MCAP while reading poses ({err})") from err
 
+    def _root_of(self, frame: str) -> str:
+        """The top of the /tf tree above `frame` (the default world frame)."""
+        parents = {child: parent for parent, child in self._edges}
+        seen = {frame}
+        while frame in parents:
+            frame = parents[frame]
+            if frame in seen:
+                raise SourceError(f"{self.path}: /tf has a cycle through '{frame}'")
+            seen.add(frame)
+        return frame
+
     def _chain(self, frame: str, stamp: int) -> Pose:
         """Pose of `frame` in the world frame at `stamp`, walking /tf edges either way."""
+        if self.world_frame is None:
+            root = self._root_of(frame)
+            if root == frame:
+                raise SourceError(
+                    f"{self.path}: no /tf transform reaches the cloud frame '{frame}' and no --pose-topic was given "
+                    f"(pass --world-frame {frame} to take the clouds as world-frame)")
+            self.world_frame = root
         if frame == self.world_frame:
             return Pose.identity()
         # breadth-first search over the (undirected) transform tree
