@@ -11,7 +11,6 @@ import zlib
 from pathlib import Path
 
 import numpy as np
-
 from scenes import box_scene, lzf_literal, write_pcd, yaw_quat
 
 PTS = box_scene(1, 40, seed=2)[0][0]
