@@ -9,8 +9,10 @@ raw sensor bytes and time span of the source, so bandwidth can be compared with 
 from __future__ import annotations
 
 import json
+import struct
 from collections.abc import Iterator
 from pathlib import Path
+from zlib import error as zlib_error
 
 from voxtool.atomic import atomic_writer
 from voxtool.codec.packet import HEADER
@@ -67,16 +69,19 @@ class PacketLogWriter:
             self._ctx.__exit__(exc_type, exc, tb)
 
 
-def read_log(path: str | Path) -> tuple[dict[str, dict], Iterator[tuple[str, int, bytes]]]:
-    """(metadata per robot, iterator of (robot, log time, packet bytes) in file order)."""
+def read_log(path: str | Path, handle=None) -> tuple[dict[str, dict], Iterator[tuple[str, int, bytes]]]:
+    """(metadata per robot, iterator of (robot, log time, packet bytes) in file order).
+    `handle` (a seekable binary stream) is read instead of opening `path`, which then only
+    names the input in messages."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
     path = Path(path)
-    try:
-        handle = open(path, "rb")
-    except OSError as err:
-        raise FormatError(f"{path}: cannot read: {err.strerror}") from err
+    if handle is None:
+        try:
+            handle = open(path, "rb")
+        except OSError as err:
+            raise FormatError(f"{path}: cannot read: {err.strerror}") from err
     try:
         reader = make_reader(handle)
         meta = {}
@@ -84,9 +89,10 @@ def read_log(path: str | Path) -> tuple[dict[str, dict], Iterator[tuple[str, int
             if record.name == "voxtool":
                 meta[record.metadata.get("robot", "")] = json.loads(record.metadata.get("info", "{}"))
         summary = reader.get_summary()
-    except (McapError, ValueError, EOFError, AssertionError, json.JSONDecodeError) as err:
+    except (McapError, ValueError, EOFError, AssertionError, json.JSONDecodeError, KeyError, struct.error,
+            UnicodeDecodeError, OverflowError, MemoryError) as err:
         handle.close()
-        raise FormatError(f"{path}: not a readable voxtool packet log ({err})") from err
+        raise FormatError(f"{path}: not a readable voxtool packet log ({type(err).__name__}: {err})") from err
     if summary is None or not any(s.name == SCHEMA_NAME for s in summary.schemas.values()):
         handle.close()
         raise FormatError(f"{path}: MCAP holds no '{SCHEMA_NAME}' schema (not a voxtool packet log)")
@@ -99,8 +105,9 @@ def read_log(path: str | Path) -> tuple[dict[str, dict], Iterator[tuple[str, int
                 if len(message.data) < HEADER.size or len(message.data) > MAX_MESSAGE:
                     raise FormatError(f"{path}: message {message.sequence} on {channel.topic} has {len(message.data)} bytes")
                 yield channel.metadata.get("robot", channel.topic.rsplit("/", 1)[-1]), message.log_time, message.data
-        except (McapError, ValueError, EOFError, AssertionError) as err:
-            raise FormatError(f"{path}: corrupt packet log ({err})") from err
+        except (McapError, ValueError, EOFError, AssertionError, KeyError, struct.error, UnicodeDecodeError,
+                OverflowError, zlib_error) as err:
+            raise FormatError(f"{path}: corrupt packet log ({type(err).__name__}: {err})") from err
         finally:
             handle.close()
 

@@ -31,13 +31,18 @@ class BtTree:
 
 
 def read_bt(path: str | Path) -> BtTree:
-    from voxtool.kernels.bt import parse_bt
-
     path = Path(path)
     try:
         blob = path.read_bytes()
     except OSError as err:
         raise FormatError(f"{path}: cannot read: {err.strerror}") from err
+    return parse_bt_bytes(blob, path)
+
+
+def parse_bt_bytes(blob: bytes, path: str | Path = "bt") -> BtTree:
+    """Decode .bt bytes; `path` only names the input in error messages."""
+    from voxtool.kernels.bt import parse_bt
+
     if not blob.startswith(HEADER):
         raise FormatError(f"{path}: not an OctoMap binary file (first line is not '{HEADER.decode()}')")
     pos = 0

@@ -59,6 +59,11 @@ def read_pcd(path: str | Path) -> PcdCloud:
         blob = path.read_bytes()
     except OSError as err:
         raise SourceError(f"{path}: cannot read: {err.strerror}") from err
+    return parse_pcd(blob, path)
+
+
+def parse_pcd(blob: bytes, path: str | Path = "pcd") -> PcdCloud:
+    """Decode PCD bytes; `path` only names the input in error messages."""
     fields, data_start = _header(path, blob)
     names = fields.get("FIELDS")
     if not names:

@@ -21,6 +21,11 @@ def read_ply(path: str | Path) -> np.ndarray:
         blob = path.read_bytes()
     except OSError as err:
         raise SourceError(f"{path}: cannot read: {err.strerror}") from err
+    return parse_ply(blob, path)
+
+
+def parse_ply(blob: bytes, path: str | Path = "ply") -> np.ndarray:
+    """Decode PLY bytes; `path` only names the input in error messages."""
     if not blob.startswith(b"ply"):
         raise SourceError(f"{path}: not a PLY file (no 'ply' magic)")
     end = blob.find(b"end_header")
@@ -41,7 +46,7 @@ def read_ply(path: str | Path) -> np.ndarray:
                 elements.append([parts[1], int(parts[2]), [], False])
             except ValueError:
                 raise SourceError(f"{path}: PLY element count '{parts[2]}' is not an integer") from None
-        elif parts[0] == "property" and elements:
+        elif parts[0] == "property" and elements and len(parts) >= 3:
             if parts[1] == "list":
                 elements[-1][3] = True
                 elements[-1][2].append((parts[-1], None))
@@ -64,6 +69,8 @@ def read_ply(path: str | Path) -> np.ndarray:
         raise SourceError(f"{path}: PLY has no 'vertex' element")
     _, count, props, has_list = elements[[e[0] for e in elements].index("vertex")]
     names = [p for p, _ in props]
+    if len(set(names)) != len(names):
+        raise SourceError(f"{path}: PLY vertex element repeats a property name ({' '.join(names)})")
     for axis in "xyz":
         if axis not in names:
             raise SourceError(f"{path}: PLY vertex element has no '{axis}' property")
