@@ -37,7 +37,7 @@ def finest_values(m: OctreeMap) -> dict:
 @pytest.mark.parametrize("res", [0.1, 0.25])
 def test_scan_updates_equal_reference_ray_sets(res, max_range):
     for scan in world_scans(2, 200, seed=int(res * 100)):
-        packed, _ = scan_updates(scan, MapParams(resolution=res, max_range=max_range))
+        packed, _, _ = scan_updates(scan, MapParams(resolution=res, max_range=max_range))
         assert np.all(np.diff(packed >> 1) > 0), "updates must be Morton-sorted and unique"
         keys = [tuple(int(v) for v in k) for k in morton_decode(packed >> 1)]
         occ = {k for k, p in zip(keys, packed) if p & 1}

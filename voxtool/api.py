@@ -20,12 +20,13 @@ def backend_stats(backend: MapBackend) -> dict:
     out = {"backend": backend.name, "resolution": backend.params.resolution,
            "leaf_nodes": leaf_nodes, "inner_nodes": inner_nodes, "memory_bytes": backend.memory_bytes()}
     out.update(leaf_stats(backend.leaves(), backend.params.resolution, backend.sensor.threshold_log))
+    out.update(backend.extra_stats())
     return out
 
 
 def build_map(source: str | os.PathLike, options: SourceOptions, params: MapParams, sensor: SensorModel,
               backend_name: str = "octree", output: str | os.PathLike | None = None,
-              progress: bool | None = None) -> dict:
+              progress: bool | None = None, backend_options: dict | None = None) -> dict:
     """Build a map from a source; write a snapshot if `output` is given. Returns stats + timings."""
     from voxtool.io.mapfile import save_map
     from voxtool.maps import make_backend
@@ -34,7 +35,7 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     if output is not None and Path(output).suffix.lower() != ".vxm":
         raise ParameterError(f"{output}: map snapshots are written as .vxm (use `voxtool export` for .bt/.ply/.pcd/.png)")
     stream = open_source(source, options)
-    backend = make_backend(backend_name, params, sensor)
+    backend = make_backend(backend_name, params, sensor, **(backend_options or {}))
     report = build(stream, backend, progress)
     result = backend_stats(backend)
     result.update(report.to_dict())

@@ -84,6 +84,8 @@ def scan_options(func):
         click.option("--max-range", default=-1.0, show_default=True, type=float,
                      help="Rays longer than this are cut here and mark no hit (OctoMap maxrange); < 0 = unlimited."),
         click.option("--min-range", default=0.0, show_default=True, type=float, help="Drop points closer than this to the sensor."),
+        click.option("--merge-rays", is_flag=True,
+                     help="Integrate rays with identical voxel paths once (TinyOctoMap); the map is unchanged under OctoMap's model."),
         click.option("--poses", type=click.Path(path_type=Path), help="Pose file (TUM, index+TUM or KITTI), one row per scan file."),
         click.option("--no-viewpoint", is_flag=True,
                      help="PCD points are already in the world frame; take only the ray origin from VIEWPOINT/--poses."),
@@ -113,7 +115,8 @@ def scan_setup(kw: dict):
     options = SourceOptions(poses=str(poses) if poses else None, no_viewpoint=kw.pop("no_viewpoint"),
                             topic=kw.pop("topic"), world_frame=kw.pop("world_frame"), pose_topic=kw.pop("pose_topic"),
                             start=kw.pop("start"), stop=kw.pop("stop"), every=kw.pop("every"), min_range=kw["min_range"])
-    params = MapParams(resolution=kw.pop("resolution"), max_range=kw.pop("max_range"), min_range=kw.pop("min_range"))
+    params = MapParams(resolution=kw.pop("resolution"), max_range=kw.pop("max_range"), min_range=kw.pop("min_range"),
+                       merge_rays=kw.pop("merge_rays"))
     sensor = SensorModel(kw.pop("prob_hit"), kw.pop("prob_miss"), kw.pop("clamp_min"), kw.pop("clamp_max"),
                          kw.pop("threshold"))
     return options, params, sensor
@@ -131,19 +134,49 @@ def resolve_source(source, sample):
 @click.argument("source", required=False, type=click.Path(path_type=Path))
 @click.option("--sample", is_flag=True, help="Use the small real sample shipped with voxtool (norlab, BSD-3) as SOURCE.")
 @click.option("-o", "--output", type=click.Path(path_type=Path), help="Write the map snapshot (.vxm) here (atomically).")
-@click.option("--backend", default="octree", show_default=True, help="Map backend (see docs/backends.md).")
+@click.option("--backend", default="octree", show_default=True, help="Map backend: octree, octocache, tiny (docs/backends.md).")
 @scan_options
+@click.option("--param", "backend_params", multiple=True, metavar="KEY=VALUE",
+              help="Backend option, e.g. tau=4, buckets=65536, threads=2, order=morton (octocache); "
+                   "pool_blocks=4096, map_size=40 (tiny).")
+@click.option("--pool-blocks", type=int, help="tiny: memory budget in blocks of 8 nodes (<= 4096: 16-bit nodes).")
+@click.option("--map-size", type=float, help="tiny: edge of the cubic map extent in metres (sets the depth).")
 @click.option("--json", "as_json", is_flag=True, help="Print statistics and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def build(source, sample, output, backend, as_json, progress, **kw):
+def build(source, sample, output, backend, backend_params, pool_blocks, map_size, as_json, progress, **kw):
     """Build an occupancy map from SOURCE: a directory of PCD (or PLY + --poses) scans, a single
     PCD/PLY file, a ROS 2 .mcap file, or an OctoMap .graph file."""
     from voxtool.api import build_map
 
     options, params, sensor = scan_setup(kw)
-    result = build_map(resolve_source(source, sample), options, params, sensor, backend, output, progress)
+    extra = parse_params(backend_params)
+    if pool_blocks is not None:
+        extra["pool_blocks"] = pool_blocks
+    if map_size is not None:
+        extra["map_size"] = map_size
+    result = build_map(resolve_source(source, sample), options, params, sensor, backend, output, progress, extra)
     emit(result, as_json, summary_rows(result) + ([("written", str(output))] if output else []))
+
+
+def parse_params(items) -> dict:
+    """KEY=VALUE strings to a dict of int / float / str values."""
+    from voxtool.errors import ParameterError
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ParameterError(f"--param '{item}' must read KEY=VALUE")
+        for cast in (int, float):
+            try:
+                out[key] = cast(value)
+                break
+            except ValueError:
+                continue
+        else:
+            out[key] = value
+    return out
 
 
 def int_list(text: str) -> list:

@@ -74,6 +74,7 @@ class MapParams:
     resolution: float = 0.2
     max_range: float = -1.0  # < 0: unlimited, as OctoMap's maxrange=-1
     min_range: float = 0.0  # points closer than this to the sensor are dropped
+    merge_rays: bool = False  # integrate rays with identical voxel paths once (TinyOctoMap IV-B)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.resolution) and 1e-4 <= self.resolution <= 100.0):

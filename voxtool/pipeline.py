@@ -30,6 +30,8 @@ class BuildReport:
     time_jit: float = 0.0
     voxel_updates: int = 0
     ray_steps: int = 0
+    rays: int = 0
+    merged_rays: int = 0
     scan_latency: list[float] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -43,6 +45,9 @@ class BuildReport:
             "raw_bytes": self.raw_bytes,
             "voxel_updates": self.voxel_updates,
             "ray_steps": self.ray_steps,
+            "rays": self.rays,
+            "merged_rays": self.merged_rays,
+            "merge_ratio": round(self.merged_rays / max(self.rays, 1), 6),
             "timings_s": {
                 "total": round(self.time_total, 6),
                 "jit": round(self.time_jit, 6),
@@ -100,6 +105,8 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None)
             report.time_update += timing.update
             report.voxel_updates += timing.voxel_updates
             report.ray_steps += timing.ray_steps
+            report.rays += timing.rays
+            report.merged_rays += timing.merged_rays
             report.scans += 1
             report.points += scan.points_read
             report.points_dropped += scan.points_dropped

@@ -246,3 +246,90 @@ def bricks_to_packed(bricks, touched, occ, order):
                 x ^= low
         b = e
     return out
+
+
+@njit(cache=True, nogil=True)
+def ray_signatures(points, origin, resolution, max_range, out_end, out_sig):
+    """Per ray: Morton code of its end voxel and a 64-bit signature of its voxel path (the
+    same DDA as scan_bricks, keys hashed in order), for merging rays with identical paths
+    (TinyOctoMap Sec. IV-B). Rays whose end voxel is the origin voxel get signature 0."""
+    res_factor = 1.0 / resolution
+    ox = origin[0]
+    oy = origin[1]
+    oz = origin[2]
+    okx = _coord_key(ox, res_factor)
+    oky = _coord_key(oy, res_factor)
+    okz = _coord_key(oz, res_factor)
+    o64 = np.empty(3, dtype=np.float64)
+    o64[0] = np.float64(ox)
+    o64[1] = np.float64(oy)
+    o64[2] = np.float64(oz)
+    mr32 = np.float32(max_range)
+    key = np.empty(3, dtype=np.int64)
+    end_key = np.empty(3, dtype=np.int64)
+    direction = np.empty(3, dtype=np.float32)
+    step = np.empty(3, dtype=np.int64)
+    t_max = np.empty(3, dtype=np.float64)
+    t_delta = np.empty(3, dtype=np.float64)
+    for i in range(points.shape[0]):
+        ex = points[i, 0]
+        ey = points[i, 1]
+        ez = points[i, 2]
+        dx = ex - ox
+        dy = ey - oy
+        dz = ez - oz
+        cut = np.int64(0)
+        if max_range >= 0.0:
+            norm = np.sqrt(np.float64(dx * dx + dy * dy + dz * dz))
+            if norm > max_range:
+                cut = np.int64(1)  # a cut ray marks no endpoint: never merge it with a hit
+                ln = np.float32(norm)
+                ex = ox + (dx / ln) * mr32
+                ey = oy + (dy / ln) * mr32
+                ez = oz + (dz / ln) * mr32
+                dx = ex - ox
+                dy = ey - oy
+                dz = ez - oz
+        end_key[0] = _coord_key(ex, res_factor)
+        end_key[1] = _coord_key(ey, res_factor)
+        end_key[2] = _coord_key(ez, res_factor)
+        out_end[i] = (morton3(end_key[0], end_key[1], end_key[2]) << 1) | cut
+        sig = np.int64(0)
+        if not (end_key[0] == okx and end_key[1] == oky and end_key[2] == okz):
+            key[0] = okx
+            key[1] = oky
+            key[2] = okz
+            length = np.float32(np.sqrt(np.float64(dx * dx + dy * dy + dz * dz)))
+            direction[0] = dx / length
+            direction[1] = dy / length
+            direction[2] = dz / length
+            for a in range(3):
+                if direction[a] > 0.0:
+                    step[a] = 1
+                elif direction[a] < 0.0:
+                    step[a] = -1
+                else:
+                    step[a] = 0
+                if step[a] != 0:
+                    border = (np.float64(key[a] - 32768) + 0.5) * resolution
+                    border += np.float64(np.float32(step[a] * resolution * 0.5))
+                    t_max[a] = (border - o64[a]) / np.float64(direction[a])
+                    t_delta[a] = resolution / abs(np.float64(direction[a]))
+                else:
+                    t_max[a] = 1.7976931348623157e308
+                    t_delta[a] = 1.7976931348623157e308
+            length64 = np.float64(length)
+            while True:
+                code = morton3(key[0], key[1], key[2])
+                sig = (sig ^ code) * _HASH_MULT + 0x632BE59BD9B4E019
+                if t_max[0] < t_max[1]:
+                    dim = 0 if t_max[0] < t_max[2] else 2
+                else:
+                    dim = 1 if t_max[1] < t_max[2] else 2
+                key[dim] += step[dim]
+                t_max[dim] += t_delta[dim]
+                if key[0] == end_key[0] and key[1] == end_key[1] and key[2] == end_key[2]:
+                    break
+                if min(t_max[0], min(t_max[1], t_max[2])) > length64:
+                    break
+        out_sig[i] = sig

@@ -9,10 +9,12 @@ from voxtool.errors import ParameterError
 from voxtool.maps.base import MapBackend
 from voxtool.maps.octocache import OctoCacheMap
 from voxtool.maps.octree import OctreeMap
+from voxtool.maps.tiny import TinyMap
 
 BACKENDS: dict[str, Callable[..., MapBackend]] = {
     "octree": OctreeMap,
     "octocache": OctoCacheMap,
+    "tiny": TinyMap,
 }
 
 
@@ -21,4 +23,7 @@ def make_backend(name: str, params: MapParams, sensor: SensorModel, **options) -
         factory = BACKENDS[name]
     except KeyError:
         raise ParameterError(f"backend '{name}' is not one of {', '.join(sorted(BACKENDS))}") from None
-    return factory(params, sensor, **options)
+    try:
+        return factory(params, sensor, **options)
+    except TypeError as err:
+        raise ParameterError(f"backend '{name}' does not take these options: {', '.join(sorted(options))}") from err

@@ -31,6 +31,8 @@ class IntegrateTiming:
     update: float = 0.0
     voxel_updates: int = 0
     ray_steps: int = 0
+    rays: int = 0
+    merged_rays: int = 0
 
 
 @dataclass
@@ -40,6 +42,8 @@ class PreparedScan:
     packed: np.ndarray  # Morton-sorted code << 1 | occupied
     steps: int
     seconds: float
+    rays: int = 0
+    merged_rays: int = 0  # rays skipped because another ray of the scan has the same voxel path
 
 
 class MapBackend(Protocol):
@@ -78,3 +82,6 @@ class MapBackend(Protocol):
 
     def extra_meta(self) -> dict[str, Any]:
         """Backend parameters to record in a snapshot."""
+
+    def extra_stats(self) -> dict[str, Any]:
+        """Backend-specific figures for `stats` (pool usage, cache counters...)."""

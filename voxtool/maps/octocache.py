@@ -173,7 +173,8 @@ class OctoCacheMap:
             update = self._write_back(codes, vals)
             c.octree_update += update
         return IntegrateTiming(raycast=prepared.seconds, update=(t3 - t0) + update,
-                               voxel_updates=int(packed.shape[0]), ray_steps=prepared.steps)
+                               voxel_updates=int(packed.shape[0]), ray_steps=prepared.steps,
+                               rays=prepared.rays, merged_rays=prepared.merged_rays)
 
     def integrate(self, scan: Scan) -> IntegrateTiming:
         return self.apply(self.prepare(scan))
@@ -224,6 +225,11 @@ class OctoCacheMap:
 
     def extra_meta(self) -> dict[str, Any]:
         return {"buckets": self.buckets, "tau": self.tau, "threads": self.threads, "order": self.order}
+
+    def extra_stats(self) -> dict[str, Any]:
+        c = self.counters
+        return {"cache_bytes": self.cache_bytes(), "buckets": self.buckets, "tau": self.tau,
+                "hit_ratio": round(sum(c.hits) / max(1, sum(c.updates)), 6), "written_to_octree": c.written_to_octree}
 
     def close(self) -> None:
         self._wait()

@@ -11,7 +11,7 @@ import numpy as np
 
 from voxtool.config import MapParams, SensorModel
 from voxtool.kernels import octree as K
-from voxtool.kernels.raycast import BrickBuffers, bricks_to_packed, scan_bricks
+from voxtool.kernels.raycast import BrickBuffers, bricks_to_packed, ray_signatures, scan_bricks
 from voxtool.keys import coords_to_keys
 from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
 from voxtool.sources.scan import Scan
@@ -112,20 +112,50 @@ def _trace_part(scan: Scan, params: MapParams, lo: int, hi: int) -> tuple:
     return out
 
 
-def scan_updates(scan: Scan, params: MapParams) -> tuple[np.ndarray, int]:
-    """Morton-sorted (code << 1 | occupied) voxel updates of one scan, and its DDA step count."""
+def merge_rays(scan: Scan, params: MapParams) -> Scan:
+    """Keep one representative of every group of rays with identical voxel paths.
+
+    Rays are identical when they end in the same voxel (and both hit or both were cut at max
+    range) and their DDA visits the same voxels in the same order (64-bit path signature).
+    Under OctoMap's one-update-per-voxel-per-scan model the map is unchanged."""
+    n = scan.points.shape[0]
+    ends = np.empty(n, dtype=np.int64)
+    sigs = np.empty(n, dtype=np.int64)
+    ray_signatures(scan.points, scan.origin, params.resolution, params.max_range, ends, sigs)
+    order = np.lexsort((sigs, ends))
+    first = np.ones(n, dtype=bool)
+    first[1:] = (ends[order][1:] != ends[order][:-1]) | (sigs[order][1:] != sigs[order][:-1])
+    keep = np.sort(order[first])
+    return Scan(scan.points[keep], scan.origin, scan.index, scan.stamp_ns, scan.source)
+
+
+def scan_updates(scan: Scan, params: MapParams) -> tuple[np.ndarray, int, int]:
+    """Morton-sorted (code << 1 | occupied) voxel updates of one scan, its DDA step count, and
+    how many rays were merged into others (0 unless params.merge_rays)."""
     n = scan.points.shape[0]
     if n == 0:
-        return np.empty(0, dtype=np.int64), 0
+        return np.empty(0, dtype=np.int64), 0, 0
     coords_to_keys(scan.origin[None, :], params.resolution, what=f"{scan.source}: sensor origin of scan")
     coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
+    merged = 0
+    if params.merge_rays:
+        scan = merge_rays(scan, params)
+        merged = n - scan.points.shape[0]
+        n = scan.points.shape[0]
     cuts = np.linspace(0, n, _SPLITS + 1).astype(int)
     parts = list(_POOL.map(lambda k: _trace_part(scan, params, cuts[k], cuts[k + 1]), range(_SPLITS)))
     bricks = np.concatenate([p[0] for p in parts])
     touched = np.concatenate([p[1] for p in parts])
     occ = np.concatenate([p[2] for p in parts])
     order = np.argsort(bricks, kind="stable")
-    return bricks_to_packed(bricks, touched, occ, order), int(sum(p[3] for p in parts))
+    return bricks_to_packed(bricks, touched, occ, order), int(sum(p[3] for p in parts)), merged
+
+
+def prepare_scan(scan: Scan, params: MapParams) -> PreparedScan:
+    """A scan's voxel updates, timed, with the ray-merging count when it is enabled."""
+    t0 = time.perf_counter()
+    packed, steps, merged = scan_updates(scan, params)
+    return PreparedScan(packed, steps, time.perf_counter() - t0, int(scan.points.shape[0]), merged)
 
 
 def warm_up_kernels() -> None:
@@ -134,6 +164,7 @@ def warm_up_kernels() -> None:
     scan = Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32))
     pool = OctreePool(64)
     pool.apply(scan_updates(scan, MapParams(resolution=0.5))[0], SensorModel())
+    merge_rays(scan, MapParams(resolution=0.5))
     pool.leaves()
     pool.query(np.zeros(1, dtype=np.int64))
 
@@ -153,16 +184,15 @@ class OctreeMap:
 
     def prepare(self, scan: Scan) -> PreparedScan:
         """Ray casting: independent of the map, so it may run ahead on another thread."""
-        t0 = time.perf_counter()
-        packed, steps = scan_updates(scan, self.params)
-        return PreparedScan(packed, steps, time.perf_counter() - t0)
+        return prepare_scan(scan, self.params)
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         """Tree update; prepared scans must be applied in scan order."""
         t0 = time.perf_counter()
         self.pool.apply(prepared.packed, self.sensor)
         return IntegrateTiming(raycast=prepared.seconds, update=time.perf_counter() - t0,
-                               voxel_updates=int(prepared.packed.shape[0]), ray_steps=prepared.steps)
+                               voxel_updates=int(prepared.packed.shape[0]), ray_steps=prepared.steps,
+                               rays=prepared.rays, merged_rays=prepared.merged_rays)
 
     def integrate(self, scan: Scan) -> IntegrateTiming:
         return self.apply(self.prepare(scan))
@@ -189,3 +219,6 @@ class OctreeMap:
 
     def extra_meta(self) -> dict[str, Any]:
         return {}
+
+    def extra_stats(self) -> dict[str, Any]:
+        return {"bytes_per_node": BYTES_PER_SLOT, "pool_slots_used": self.pool.used_slots()}

@@ -1,0 +1,174 @@
+"""TinyOctoMap kernels: an octree of small integer words in a fixed memory pool.
+
+Word layout (docs/backends.md): low 4 bits = occupancy level (0 unknown, 1..15 known), the other
+bits = index of the node's first child block (0 = no children; block 0 holds the root). Siblings
+are the 8 consecutive words of a block. uint16 words give 12 index bits (4096 blocks, 64 KiB: the
+paper's pool); uint32 words give 28 bits for larger pools.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+T_FREE_TOP = 0  # meta: number of free-list entries
+T_NEXT = 1  # next never-used block
+T_BLOCKS = 2  # pool capacity in blocks
+T_DROPPED = 3  # updates dropped because no block was left
+T_OUTSIDE = 4  # updates outside the map extent
+
+
+@njit(cache=True, inline="always")
+def _compact(v):
+    v = v & 0x249249249249
+    v = (v | (v >> 2)) & 0x0C30C30C30C3
+    v = (v | (v >> 4)) & 0x00F00F00F00F
+    v = (v | (v >> 8)) & 0x0000FF0000FF
+    v = (v | (v >> 16)) & 0xFFFF
+    return v
+
+
+@njit(cache=True, inline="always")
+def _alloc(free, meta):
+    if meta[T_FREE_TOP] > 0:
+        meta[T_FREE_TOP] -= 1
+        return free[meta[T_FREE_TOP]]
+    if meta[T_NEXT] < meta[T_BLOCKS]:
+        b = meta[T_NEXT]
+        meta[T_NEXT] += 1
+        return b
+    return -1
+
+
+@njit(cache=True)
+def tiny_apply(pool, free, meta, packed, offset, depth, hit, miss, prior, lmin, lmax):
+    """Apply one scan's updates (OctoMap Morton code << 1 | occupied), each with eager pruning
+    on the way back up, as OctoMap does. Updates outside the map, or needing a block when the pool
+    is exhausted, are dropped and counted; the tree stays valid."""
+    path = np.zeros(depth + 1, dtype=np.int64)
+    size = 1 << depth
+    for i in range(packed.shape[0]):
+        code = packed[i] >> 1
+        step = hit if (packed[i] & 1) else -miss
+        x = _compact(code) - offset
+        y = _compact(code >> 1) - offset
+        z = _compact(code >> 2) - offset
+        if x < 0 or y < 0 or z < 0 or x >= size or y >= size or z >= size:
+            meta[T_OUTSIDE] += 1
+            continue
+        s = 0
+        path[0] = 0
+        ok = True
+        for d in range(depth):
+            w = np.int64(pool[s])
+            child = w >> 4
+            lvl = w & 15
+            if child == 0:
+                # a leaf above the finest level: pruned (known) or never seen (unknown)
+                if lvl != 0 and ((step > 0 and lvl >= lmax) or (step < 0 and lvl <= lmin)):
+                    ok = False  # OctoMap's early abort: already clamped this way
+                    break
+                b = _alloc(free, meta)
+                if b < 0:
+                    meta[T_DROPPED] += 1
+                    ok = False
+                    break
+                for j in range(8):
+                    pool[b * 8 + j] = lvl
+                pool[s] = (b << 4) | lvl
+                child = b
+            bit = depth - 1 - d
+            pos = ((x >> bit) & 1) | (((y >> bit) & 1) << 1) | (((z >> bit) & 1) << 2)
+            s = child * 8 + pos
+            path[d + 1] = s
+        if not ok:
+            continue
+        lvl = np.int64(pool[s]) & 15
+        if lvl == 0:
+            lvl = prior
+        lvl += step
+        if lvl < lmin:
+            lvl = lmin
+        elif lvl > lmax:
+            lvl = lmax
+        pool[s] = lvl
+        for d in range(depth - 1, -1, -1):
+            n = path[d]
+            b = np.int64(pool[n]) >> 4
+            first = np.int64(pool[b * 8])
+            same = (first >> 4) == 0 and (first & 15) != 0
+            best = 0
+            for j in range(8):
+                w = np.int64(pool[b * 8 + j])
+                if (w & 15) > best:
+                    best = w & 15
+                if w != first or (w >> 4) != 0:
+                    same = False
+            if same:
+                pool[n] = first & 15
+                free[meta[T_FREE_TOP]] = b
+                meta[T_FREE_TOP] += 1
+            else:
+                pool[n] = (b << 4) | best
+
+
+@njit(cache=True)
+def tiny_leaves(pool, offset, depth, out_codes, out_depth, out_level):
+    """Known leaves as (OctoMap Morton code of the first voxel, OctoMap depth, level), in
+    depth-first order; returns how many. The root leaf (whole map one value) is split in 8."""
+    st_s = np.zeros(8 * depth + 16, dtype=np.int64)
+    st_d = np.zeros(8 * depth + 16, dtype=np.int64)
+    st_x = np.zeros(8 * depth + 16, dtype=np.int64)
+    st_y = np.zeros(8 * depth + 16, dtype=np.int64)
+    st_z = np.zeros(8 * depth + 16, dtype=np.int64)
+    sp = 0
+    k = 0
+    root = np.int64(pool[0])
+    if root >> 4 == 0:
+        if root & 15 == 0:
+            return 0
+        # expand a whole-map leaf into its 8 octants so every leaf is aligned in OctoMap keys
+        for j in range(7, -1, -1):
+            st_s[sp] = -1 - (root & 15)
+            st_d[sp] = 1
+            half = 1 << (depth - 1)
+            st_x[sp] = (j & 1) * half
+            st_y[sp] = ((j >> 1) & 1) * half
+            st_z[sp] = ((j >> 2) & 1) * half
+            sp += 1
+    else:
+        st_s[0] = 0
+        sp = 1
+    while sp > 0:
+        sp -= 1
+        s = st_s[sp]
+        d = st_d[sp]
+        x, y, z = st_x[sp], st_y[sp], st_z[sp]
+        if s < 0:
+            w = -1 - s  # a level pushed directly (split root leaf)
+        else:
+            w = np.int64(pool[s])
+        if s < 0 or (w >> 4) == 0:
+            lvl = w & 15
+            if lvl != 0:
+                kx, ky, kz = x + offset, y + offset, z + offset
+                code = np.int64(0)
+                for bit in range(16):
+                    code |= ((kx >> bit) & 1) << (3 * bit)
+                    code |= ((ky >> bit) & 1) << (3 * bit + 1)
+                    code |= ((kz >> bit) & 1) << (3 * bit + 2)
+                out_codes[k] = code
+                out_depth[k] = 16 - (depth - d)
+                out_level[k] = lvl
+                k += 1
+            continue
+        b = w >> 4
+        half = 1 << (depth - d - 1)
+        for j in range(7, -1, -1):
+            st_s[sp] = b * 8 + j
+            st_d[sp] = d + 1
+            st_x[sp] = x + (j & 1) * half
+            st_y[sp] = y + ((j >> 1) & 1) * half
+            st_z[sp] = z + ((j >> 2) & 1) * half
+            sp += 1
+    return k

@@ -1,0 +1,138 @@
+"""The `tiny` backend: TinyOctoMap (seed tinyoctomap-heterogeneous-navs.md, Sec. III-A).
+
+An octree of integer words in a fixed pool of `pool_blocks` blocks of 8 siblings. Occupancy is a
+4-bit level instead of float log-odds: level 0 = unknown, a new voxel starts at `prior` (6), a hit
+adds `hit` (2), a miss subtracts `miss` (1), clamped to [1, 15]; occupied when level > prior.
+One level step is OctoMap's miss (0.405 log-odds), so hit = 0.81 (OctoMap 0.847), clamps = -2.03 /
++3.65 (OctoMap -1.99 / +3.51). Depth follows from the map size: the smallest d with
+resolution * 2^d >= map_size, the map centred on the origin.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from voxtool.config import MapParams, SensorModel
+from voxtool.errors import ParameterError
+from voxtool.kernels import tiny as K
+from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
+from voxtool.maps.octree import OctreeMap, prepare_scan
+from voxtool.sources.scan import Scan
+
+LEVEL_STEP_LOG = 0.4054651  # log-odds of one level: OctoMap's miss
+
+
+class TinyMap:
+    name = "tiny"
+
+    def __init__(self, params: MapParams, sensor: SensorModel, pool_blocks: int = 4096, map_size: float | None = None,
+                 hit: int = 2, miss: int = 1, prior: int = 6) -> None:
+        if not 2 <= pool_blocks <= (1 << 28):
+            raise ParameterError(f"pool_blocks={pool_blocks} must lie in 2..2^28")
+        if not (1 <= prior < 15 and 1 <= hit <= 14 and 1 <= miss <= 14):
+            raise ParameterError(f"tiny levels hit={hit} miss={miss} prior={prior} out of range (levels are 1..15)")
+        self.params, self.sensor = params, sensor
+        size = map_size if map_size is not None else params.resolution * 2048
+        if not (size > 0 and np.isfinite(size)):
+            raise ParameterError(f"map_size={size} must be positive")
+        self.map_size = float(size)
+        self.depth = max(1, int(np.ceil(np.log2(size / params.resolution))))
+        if self.depth > 16:
+            raise ParameterError(f"map_size={size} m at {params.resolution} m needs depth {self.depth} > 16")
+        self.offset = 32768 - (1 << (self.depth - 1))  # tiny key 0 = OctoMap key offset
+        self.pool_blocks, self.hit, self.miss, self.prior = pool_blocks, hit, miss, prior
+        dtype = np.uint16 if pool_blocks <= 4096 else np.uint32  # 12 index bits fit in 16-bit words
+        self.pool = np.zeros(pool_blocks * 8, dtype=dtype)
+        self.free = np.zeros(pool_blocks, dtype=np.int64)
+        self.meta = np.array([0, 1, pool_blocks, 0, 0], dtype=np.int64)
+
+    # -- MapBackend -------------------------------------------------------------------------
+    def warm_up(self) -> None:
+        OctreeMap(self.params, self.sensor).warm_up()
+        probe = TinyMap(MapParams(resolution=0.5), self.sensor, pool_blocks=self.pool_blocks, map_size=8.0)
+        probe.integrate(Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
+        probe.leaves()
+
+    def prepare(self, scan: Scan) -> PreparedScan:
+        return prepare_scan(scan, self.params)
+
+    def apply(self, prepared: PreparedScan) -> IntegrateTiming:
+        t0 = time.perf_counter()
+        K.tiny_apply(self.pool, self.free, self.meta, prepared.packed, self.offset, self.depth,
+                     self.hit, self.miss, self.prior, 1, 15)
+        return IntegrateTiming(raycast=prepared.seconds, update=time.perf_counter() - t0,
+                               voxel_updates=int(prepared.packed.shape[0]), ray_steps=prepared.steps,
+                               rays=prepared.rays, merged_rays=prepared.merged_rays)
+
+    def integrate(self, scan: Scan) -> IntegrateTiming:
+        return self.apply(self.prepare(scan))
+
+    def level_leaves(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = self.blocks_used() * 8 + 8
+        codes = np.empty(n, dtype=np.int64)
+        depths = np.empty(n, dtype=np.uint8)
+        levels = np.empty(n, dtype=np.int64)
+        k = K.tiny_leaves(self.pool, self.offset, self.depth, codes, depths, levels)
+        return codes[:k], depths[:k], levels[:k]
+
+    def leaves(self) -> Leaves:
+        codes, depths, levels = self.level_leaves()
+        values = ((levels - self.prior) * LEVEL_STEP_LOG).astype(np.float32)
+        return Leaves(codes, depths, values)
+
+    def query(self, codes: np.ndarray) -> np.ndarray:
+        lv = self.leaves()
+        from voxtool.keys import leaf_span
+
+        ends = lv.codes + leaf_span(lv.depths)
+        idx = np.searchsorted(lv.codes, codes, side="right") - 1
+        out = np.full(codes.shape[0], np.nan, dtype=np.float32)
+        ok = (idx >= 0) & (codes < ends[np.clip(idx, 0, None)]) if lv.codes.shape[0] else np.zeros(codes.shape[0], bool)
+        out[ok] = lv.values[idx[ok]]
+        return out
+
+    def blocks_used(self) -> int:
+        return int(self.meta[K.T_NEXT] - self.meta[K.T_FREE_TOP])
+
+    def node_counts(self) -> tuple[int, int]:
+        codes, _, _ = self.level_leaves()
+        used_nodes = 1 + 8 * (self.blocks_used() - 1)  # root + every allocated block's 8 slots
+        inner = self.blocks_used() - 1
+        return int(codes.shape[0]), int(inner) if used_nodes else 0
+
+    def memory_bytes(self) -> int:
+        return int(self.pool.nbytes)
+
+    def extra_stats(self) -> dict[str, Any]:
+        return self.pool_stats()
+
+    def pool_stats(self) -> dict:
+        used = self.blocks_used()
+        return {"pool_blocks": self.pool_blocks, "pool_blocks_used": used, "pool_usage": round(used / self.pool_blocks, 6),
+                "bytes_per_node": int(self.pool.itemsize), "dropped_updates": int(self.meta[K.T_DROPPED]),
+                "outside_map_updates": int(self.meta[K.T_OUTSIDE]), "depth": self.depth, "map_size_m": self.map_size}
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        lv = self.leaves()
+        return {"leaf_codes": lv.codes, "leaf_depths": lv.depths, "leaf_values": lv.values,
+                "tiny_pool": self.pool.astype(np.uint32), "tiny_free": self.free, "tiny_meta": self.meta}
+
+    def load_state(self, arrays: dict[str, np.ndarray]) -> None:
+        from voxtool.errors import FormatError
+
+        pool, free, meta = arrays.get("tiny_pool"), arrays.get("tiny_free"), arrays.get("tiny_meta")
+        if pool is None or free is None or meta is None or pool.shape[0] != self.pool.shape[0] \
+                or free.shape[0] != self.free.shape[0] or meta.shape[0] != 5:
+            raise FormatError("tiny snapshot: pool arrays missing or of the wrong size")
+        if np.any((pool >> 4) >= self.pool_blocks) or np.any(free < 0) or np.any(free >= self.pool_blocks):
+            raise FormatError("tiny snapshot: a child index points outside the pool")
+        self.pool[:] = pool.astype(self.pool.dtype)
+        self.free[:] = free
+        self.meta[:] = meta
+
+    def extra_meta(self) -> dict[str, Any]:
+        return {"pool_blocks": self.pool_blocks, "map_size": self.map_size, "hit": self.hit, "miss": self.miss,
+                "prior": self.prior}
