@@ -3,6 +3,7 @@
     python benchmarks/bench_packets.py fig5 [--samples 10]        # synthetic OGMs, hilbert vs RACER bytes
     python benchmarks/bench_packets.py streams [--data ../shared/data]  # encode real streams, bandwidth table
     python benchmarks/bench_packets.py throughput                 # encode/decode cells per second
+    python benchmarks/bench_packets.py split                      # one stream as two robots: fusion, resend
 
 Prints tables and writes bench-results/packets_<mode>.json.
 """
@@ -92,6 +93,41 @@ def streams(data: Path) -> dict:
     return {"rows": rows}
 
 
+def split(data: Path) -> dict:
+    """One real stream split between two robots: fused map vs the single-robot map, and the
+    resend simulation under 30 % loss (+ reordering, duplicates) vs the lossless fusion."""
+    from voxtool.codec.fusion import fuse
+    from voxtool.codec.resend import simulate
+
+    src = data / "quick_shack" / "quick_shack.mcap"
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        logs = {}
+        for robot, args in (("a", ["--stop", "120"]), ("b", ["--start", "120"]), ("single", [])):
+            logs[robot] = Path(tmp) / f"{robot}.mcap"
+            subprocess.run(["voxtool", "encode", str(src), "-o", str(logs[robot]), "--robot", robot, "--resolution", "0.1",
+                            "--no-progress", *args], check=True, capture_output=True)
+        fused = fuse([logs["a"], logs["b"]])
+        single = fuse([logs["single"]])
+        union = np.union1d(fused.codes, single.codes)
+        fs = dict(zip(fused.codes.tolist(), fused.states.tolist()))
+        ss = dict(zip(single.codes.tolist(), single.states.tolist()))
+        agree = sum(1 for c in union.tolist() if fs.get(c, 2) == ss.get(c, 2))
+        occ_f = set(fused.codes[fused.states == 1].tolist())
+        occ_s = set(single.codes[single.states == 1].tolist())
+        rows["fused_vs_single"] = {
+            "voxels_union": int(union.size), "same_state": agree, "agreement": round(agree / union.size, 6),
+            "occupied_single": len(occ_s), "occupied_fused": len(occ_f), "occupied_both": len(occ_s & occ_f),
+            "only_single_known": int(np.setdiff1d(single.codes, fused.codes).size),
+            "only_fused_known": int(np.setdiff1d(fused.codes, single.codes).size)}
+        sims = []
+        for seed in range(3):
+            sims.append(simulate([logs["a"], logs["b"]], loss=0.3, seed=seed))
+        rows["simulations"] = sims
+    print(json.dumps(rows, indent=1))
+    return rows
+
+
 def throughput() -> dict:
     from voxtool.codec.hilbert import box_order
     from voxtool.codec.packet import decode_packet, encode_packet
@@ -125,11 +161,12 @@ def throughput() -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("mode", choices=["fig5", "streams", "throughput"])
+    ap.add_argument("mode", choices=["fig5", "streams", "throughput", "split"])
     ap.add_argument("--samples", type=int, default=10)
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
     args = ap.parse_args()
-    result = {"fig5": lambda: fig5(args.samples), "streams": lambda: streams(Path(args.data)), "throughput": throughput}[args.mode]()
+    result = {"fig5": lambda: fig5(args.samples), "streams": lambda: streams(Path(args.data)), "throughput": throughput,
+              "split": lambda: split(Path(args.data))}[args.mode]()
     OUT.mkdir(exist_ok=True)
     (OUT / f"packets_{args.mode}.json").write_text(json.dumps(result, indent=2, default=str))
 

@@ -288,3 +288,19 @@ def test_bad_packet_logs_fail_cleanly(tmp_path):
     write_mcap(tmp_path / "bag.mcap", scans)
     code, text = run("stats", tmp_path / "bag.mcap")
     assert code == 5 and "not a voxtool packet log" in text
+
+
+def test_hashmap_build_share_and_relay(tmp_path):
+    share = tmp_path / "share.mcap"
+    code, text = run("build", "--sample", "--backend", "hashmap", "--param", "n_lim=3000", "--schedule", "2:n_lim=2000",
+                     "--share", share, "--ring", "2", "--json", "-o", tmp_path / "h.vxm")
+    assert code == 0, text
+    r = json.loads(text)
+    assert r["n_occ"] <= 2000 and r["per_scan_n_occ"]["max"] <= 3000 and r["shared_packets"] == 5
+    assert r["per_scan_t_tot_ms"]["p95"] >= r["per_scan_t_tot_ms"]["median"] > 0
+    code, text = run("decode", share, "--relay", "--json", "-o", tmp_path / "relayed.vxm")
+    assert code == 0, text
+    relayed = json.loads(text)
+    assert relayed["frames"] == 5 and relayed["n_occ"] >= r["n_occ"]
+    assert run("stats", tmp_path / "relayed.vxm")[0] == 0
+    assert run("build", "--sample", "--share", share)[0] == 2  # sharing needs the hash map

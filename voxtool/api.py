@@ -26,8 +26,11 @@ def backend_stats(backend: MapBackend) -> dict:
 
 def build_map(source: str | os.PathLike, options: SourceOptions, params: MapParams, sensor: SensorModel,
               backend_name: str = "octree", output: str | os.PathLike | None = None,
-              progress: bool | None = None, backend_options: dict | None = None) -> dict:
-    """Build a map from a source; write a snapshot if `output` is given. Returns stats + timings."""
+              progress: bool | None = None, backend_options: dict | None = None,
+              share: str | os.PathLike | None = None, share_ring: int = 3, robot: str = "r1") -> dict:
+    """Build a map from a source; write a snapshot if `output` is given. Returns stats + timings.
+    `share` (hashmap backend): write each scan's newly occupied voxels, ring of `share_ring`
+    frames, as a packet log."""
     from voxtool.io.mapfile import save_map
     from voxtool.maps import make_backend
     from voxtool.pipeline import build
@@ -36,9 +39,25 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
         raise ParameterError(f"{output}: map snapshots are written as .vxm (use `voxtool export` for .bt/.ply/.pcd/.png)")
     stream = open_source(source, options)
     backend = make_backend(backend_name, params, sensor, **(backend_options or {}))
-    report = build(stream, backend, progress)
+    writer = None
+    if share is not None:
+        from voxtool.codec.share import ShareWriter
+
+        if backend_name != "hashmap":
+            raise ParameterError("--share needs --backend hashmap (it shares the hash map's newly occupied voxels)")
+        writer = ShareWriter(share, robot, share_ring, "zstd", params.resolution)
+    ok = False
+    try:
+        report = build(stream, backend, progress, writer)
+        ok = True
+    finally:
+        if writer is not None:
+            writer.close(ok)
     result = backend_stats(backend)
     result.update(report.to_dict())
+    if writer is not None:
+        result["shared_bytes"] = writer.bytes
+        result["shared_packets"] = writer.seq
     if output is not None:
         info = {"source": str(source), "source_kind": stream.kind, "source_options": options.__dict__,
                 **{k: result[k] for k in ("scans", "points", "points_dropped", "raw_bytes")}}

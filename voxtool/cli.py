@@ -141,10 +141,15 @@ def resolve_source(source, sample):
                    "pool_blocks=4096, map_size=40 (tiny).")
 @click.option("--pool-blocks", type=int, help="tiny: memory budget in blocks of 8 nodes (<= 4096: 16-bit nodes).")
 @click.option("--map-size", type=float, help="tiny: edge of the cubic map extent in metres (sets the depth).")
+@click.option("--schedule", multiple=True, metavar="SCAN:KEY=VALUE",
+              help="hashmap: change p_init, n_lim, d_in, d_inf, inf_range or ttl from scan SCAN on (repeatable).")
+@click.option("--share", type=click.Path(path_type=Path), help="hashmap: write newly occupied voxels (ring buffer) as a packet log.")
+@click.option("--ring", default=3, show_default=True, type=int, help="hashmap --share: frames per broadcast (k).")
 @click.option("--json", "as_json", is_flag=True, help="Print statistics and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def build(source, sample, output, backend, backend_params, pool_blocks, map_size, as_json, progress, **kw):
+def build(source, sample, output, backend, backend_params, pool_blocks, map_size, schedule, share, ring, as_json,
+          progress, **kw):
     """Build an occupancy map from SOURCE: a directory of PCD (or PLY + --poses) scans, a single
     PCD/PLY file, a ROS 2 .mcap file, or an OctoMap .graph file."""
     from voxtool.api import build_map
@@ -155,7 +160,10 @@ def build(source, sample, output, backend, backend_params, pool_blocks, map_size
         extra["pool_blocks"] = pool_blocks
     if map_size is not None:
         extra["map_size"] = map_size
-    result = build_map(resolve_source(source, sample), options, params, sensor, backend, output, progress, extra)
+    if schedule:
+        extra["schedule"] = parse_schedule(schedule)
+    result = build_map(resolve_source(source, sample), options, params, sensor, backend, output, progress, extra,
+                       share, ring)
     emit(result, as_json, summary_rows(result) + ([("written", str(output))] if output else []))
 
 
@@ -176,6 +184,21 @@ def parse_params(items) -> dict:
                 continue
         else:
             out[key] = value
+    return out
+
+
+def parse_schedule(items) -> list:
+    """'SCAN:KEY=VALUE' strings to (scan index, key, value) triples."""
+    from voxtool.errors import ParameterError
+
+    out = []
+    for item in items:
+        at, _, rest = item.partition(":")
+        key, _, value = rest.partition("=")
+        try:
+            out.append((int(at), key, float(value)))
+        except ValueError:
+            raise ParameterError(f"--schedule '{item}' must read SCAN:KEY=VALUE") from None
     return out
 
 
@@ -273,10 +296,35 @@ def encode(source, sample, output, robot, backend, scheme, codec, max_changes, m
 @click.argument("log", type=click.Path(path_type=Path))
 @click.option("-o", "--output", type=click.Path(path_type=Path), help="Write the replayed state map as a snapshot (.vxm).")
 @click.option("--json", "as_json", is_flag=True, help="Dump packet headers and decoded voxel states as JSON.")
+@click.option("--relay", is_flag=True, help="Integrate 'occupied' frames into a hash map like sensor hits (receiver side).")
+@click.option("--d-inf", default=0.2, show_default=True, type=float, help="--relay: inflation radius of the receiving hash map.")
 @handle_errors
-def decode(log, output, as_json):
+def decode(log, output, as_json, relay, d_inf):
     """Replay a packet log into a state map (free / occupied / unknown)."""
     from voxtool.codec.fusion import fuse, packets_of, save_state_map
+
+    if relay:
+        from voxtool.api import backend_stats
+        from voxtool.codec.log import read_log
+        from voxtool.codec.share import relay as relay_frames
+        from voxtool.config import MapParams, SensorModel
+        from voxtool.io.mapfile import save_map
+        from voxtool.maps.hashmap import HashVoxelMap
+
+        meta, _ = read_log(log)
+        res = next((m.get("resolution") for m in meta.values() if m.get("resolution")), None)
+        if res is None:
+            from voxtool.errors import FormatError
+
+            raise FormatError(f"{log}: packet log metadata gives no resolution")
+        m = HashVoxelMap(MapParams(resolution=res), SensorModel(), d_inf=d_inf)
+        frames = relay_frames(log, m)
+        result = backend_stats(m)
+        result["frames"] = frames
+        if output is not None:
+            save_map(output, m, {"source": str(log), "relayed_frames": frames})
+        emit(result, as_json, summary_rows(result))
+        return
 
     if as_json:
         dump = []

@@ -65,7 +65,7 @@ class BuildReport:
         }
 
 
-def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None) -> BuildReport:
+def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None, on_scan=None) -> BuildReport:
     """Integrate every scan of `stream` into `backend`.
 
     Reading and ray casting of scan i+1 run on a helper thread while scan i updates the map (both
@@ -99,6 +99,8 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None)
                 break
             future = ahead.submit(read_and_prepare)
             timing = backend.apply(prepared)
+            if on_scan is not None:
+                on_scan(scan, backend)
             report.time_read += read_s
             report.scan_latency.append(timing.raycast + timing.update)
             report.time_raycast += timing.raycast

@@ -7,6 +7,7 @@ from collections.abc import Callable
 from voxtool.config import MapParams, SensorModel
 from voxtool.errors import ParameterError
 from voxtool.maps.base import MapBackend
+from voxtool.maps.hashmap import HashVoxelMap
 from voxtool.maps.octocache import OctoCacheMap
 from voxtool.maps.octree import OctreeMap
 from voxtool.maps.tiny import TinyMap
@@ -15,6 +16,7 @@ BACKENDS: dict[str, Callable[..., MapBackend]] = {
     "octree": OctreeMap,
     "octocache": OctoCacheMap,
     "tiny": TinyMap,
+    "hashmap": HashVoxelMap,
 }
 
 

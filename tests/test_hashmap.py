@@ -1,0 +1,190 @@
+"""The hash-map backend against a slow, obviously-correct recomputation after every scan."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from reference import scan_update_sets
+from test_octree import world_scans
+
+from voxtool.config import MapParams, SensorModel, logodds
+from voxtool.keys import morton_decode, morton_encode
+from voxtool.maps.hashmap import HashVoxelMap
+
+F32 = np.float32
+S = SensorModel()
+
+
+class ReferenceMap:
+    """Alg. 1-3 with Python dicts and lists, following docs/backends.md literally."""
+
+    def __init__(self, res, p_init=0.5, n_lim=-1, d_in=-1.0, d_inf=0.2, inf_range=-1.0, p_free=0.4):
+        self.res = res
+        self.p = dict(p_init=p_init, n_lim=n_lim, d_in=d_in, d_inf=d_inf, inf_range=inf_range)
+        self.p_free = p_free
+        self.rec: dict[tuple, dict] = {}
+        self.history: list[tuple] = []
+
+    def sphere(self, k, radius):
+        out = []
+        for dx in range(-radius, radius + 1):
+            for dy in range(-radius, radius + 1):
+                for dz in range(-radius, radius + 1):
+                    if dx * dx + dy * dy + dz * dz <= radius * radius:
+                        out.append((k[0] + dx, k[1] + dy, k[2] + dz))
+        return out
+
+    def inflate(self, k, sign, radius):
+        for n in self.sphere(k, radius):
+            r = self.rec.setdefault(n, dict(l=F32(0), in_occ=False, state=2, inf=0, radius=-1))
+            r["inf"] += sign
+            if r["inf"] == 0 and not r["in_occ"]:
+                del self.rec[n]
+
+    def remove_from_map(self, k):
+        r = self.rec[k]
+        if r["radius"] >= 0:
+            self.inflate(k, -1, r["radius"])
+            r = self.rec.get(k, r)
+            r["radius"] = -1
+        if k in self.history:
+            self.history.remove(k)
+        r["in_occ"] = False
+        if r["inf"] == 0:
+            del self.rec[k]
+        else:
+            r["state"] = 2
+
+    def integrate(self, points, origin):
+        p = self.p
+        if p["d_in"] >= 0:
+            d = np.linalg.norm(points.astype(np.float64) - origin.astype(np.float64), axis=1)
+            points = points[d <= p["d_in"]]
+        free, occ = scan_update_sets(points, origin, self.res)
+        keys = sorted(free | occ, key=lambda k: int(morton_encode(np.array([k]))[0]))
+        touched, changed = [], []
+        l_init, l_free = F32(logodds(p["p_init"])), F32(logodds(self.p_free))
+        for k in keys:
+            r = self.rec.get(k)
+            new = False
+            if k in occ:
+                if r is None:
+                    r = self.rec[k] = dict(l=F32(0), in_occ=False, state=2, inf=0, radius=-1)
+                if not r["in_occ"]:
+                    r.update(in_occ=True, l=l_init, state=2)
+                    new = True
+                v = F32(r["l"] + F32(S.hit_log))
+            else:
+                if r is None or not r["in_occ"]:
+                    continue
+                v = F32(r["l"] + F32(S.miss_log))
+            v = min(max(v, F32(S.clamp_min_log)), F32(S.clamp_max_log))
+            was_occ = r["state"] == 1 and not new
+            r["l"] = v
+            r["state"] = 1 if v > 0 else (0 if v < l_free else 2)
+            touched.append(k)
+            if was_occ != (r["state"] == 1):
+                changed.append(k)
+        radius = int(math.floor(p["d_inf"] / self.res + 1e-9))
+        for k in changed:
+            r = self.rec[k]
+            c = (np.array(k, dtype=np.float64) - 32768 + 0.5) * self.res - origin.astype(np.float64)
+            if p["inf_range"] >= 0 and float(c @ c) > p["inf_range"] ** 2:
+                continue
+            if r["state"] == 1 and r["radius"] < 0:
+                r["radius"] = radius
+                self.inflate(k, 1, radius)
+            elif r["state"] != 1 and r["radius"] >= 0:
+                self.inflate(k, -1, r["radius"])
+                self.rec[k]["radius"] = -1
+        for k in touched:
+            r = self.rec.get(k)
+            if r is None or not r["in_occ"]:
+                continue
+            if k in self.history:
+                self.history.remove(k)
+            if r["state"] == 1:
+                self.history.append(k)
+            elif r["state"] == 0:
+                self.remove_from_map(k)
+        n_lim = p["n_lim"] if p["n_lim"] >= 0 else 10**18
+        while len(self.history) > n_lim:
+            self.remove_from_map(self.history[0])
+
+    def occupied(self):
+        return {k for k, r in self.rec.items() if r["in_occ"] and r["state"] == 1}
+
+    def inflation(self):
+        return {k: r["inf"] for k, r in self.rec.items() if r["inf"] > 0}
+
+
+def as_keys(codes):
+    return {tuple(int(v) for v in k) for k in morton_decode(np.asarray(codes, dtype=np.int64))}
+
+
+def check(m: HashVoxelMap, ref: ReferenceMap):
+    assert as_keys(m.occupied_codes()) == ref.occupied()
+    got = m.inflation_counts()
+    assert {tuple(int(v) for v in morton_decode(np.array([c]))[0]): n for c, n in got.items()} == ref.inflation()
+
+
+@pytest.mark.parametrize("kw", [
+    dict(n_lim=-1, d_inf=0.2),
+    dict(n_lim=60, d_inf=0.4),
+    dict(n_lim=200, d_inf=0.2, d_in=3.0, p_init=0.6),
+    dict(n_lim=-1, d_inf=0.3, inf_range=2.5),
+])
+def test_every_scan_equals_brute_force(kw):
+    m = HashVoxelMap(MapParams(0.1), S, **kw)
+    ref = ReferenceMap(0.1, **kw)
+    for scan in world_scans(8, 120, seed=31):
+        m.integrate(scan)
+        ref.integrate(scan.points, scan.origin)
+        check(m, ref)
+        if kw["n_lim"] >= 0:
+            assert len(m.occupied_codes()) <= kw["n_lim"]
+
+
+def test_parameter_schedule_takes_effect_mid_stream():
+    schedule = [(3, "n_lim", 40), (4, "d_inf", 0.3), (5, "p_init", 0.7), (6, "d_in", 2.0)]
+    m = HashVoxelMap(MapParams(0.1), S, n_lim=-1, d_inf=0.1, schedule=schedule)
+    ref = ReferenceMap(0.1, n_lim=-1, d_inf=0.1)
+    for i, scan in enumerate(world_scans(9, 120, seed=5)):
+        scan.index = i
+        for at, key, value in schedule:
+            if at == i:
+                ref.p[key] = value
+        m.integrate(scan)
+        ref.integrate(scan.points, scan.origin)
+        check(m, ref)
+        if i >= 3:
+            assert len(m.occupied_codes()) <= 40
+
+
+def test_ttl_forgets_voxels_not_seen_recently():
+
+    ttl = 0.25  # 10 Hz stamps: a voxel survives 2 scans without an update
+    m = HashVoxelMap(MapParams(0.1), S, ttl=ttl)
+    keep_all = HashVoxelMap(MapParams(0.1), S)
+    for i, scan in enumerate(world_scans(8, 150, seed=2)):
+        scan.index = i
+        m.integrate(scan)
+        keep_all.integrate(scan)
+        now = i * 100_000_000
+        live = m._live()
+        occ = live[(m.records[3][live] == 1) & (m.records[2][live] == 1)]
+        assert np.all(m.records[10][occ] >= now - int(ttl * 1e9))  # records[10]: last update stamp
+    assert 0 < len(m.occupied_codes()) < len(keep_all.occupied_codes())
+
+
+def test_relayed_map_from_shared_frames_holds_the_occupied_voxels():
+    sender = HashVoxelMap(MapParams(0.1), S)
+    receiver = HashVoxelMap(MapParams(0.1), S)
+    for i, scan in enumerate(world_scans(6, 200, seed=8)):
+        scan.index = i
+        sender.integrate(scan)
+        receiver.integrate_shared(morton_decode(sender.newly_occupied), i * 100_000_000, i)
+    sent, got = as_keys(sender.occupied_codes()), as_keys(receiver.occupied_codes())
+    assert sent <= got  # every voxel occupied now was shared when it became occupied
