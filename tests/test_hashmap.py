@@ -188,3 +188,23 @@ def test_relayed_map_from_shared_frames_holds_the_occupied_voxels():
         receiver.integrate_shared(morton_decode(sender.newly_occupied), i * 100_000_000, i)
     sent, got = as_keys(sender.occupied_codes()), as_keys(receiver.occupied_codes())
     assert sent <= got  # every voxel occupied now was shared when it became occupied
+
+
+def test_snapshot_round_trip(tmp_path):
+    from voxtool.io.mapfile import load_map, save_map
+
+    m = HashVoxelMap(MapParams(0.1), S, n_lim=500, d_inf=0.2)
+    for scan in world_scans(4, 150, seed=12):
+        m.integrate(scan)
+    save_map(tmp_path / "h.vxm", m, {})
+    back, snap = load_map(tmp_path / "h.vxm")
+    assert snap.header["backend_params"]["n_lim"] == 500
+    a, b = m.leaves(), back.leaves()
+    assert np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)
+    assert np.array_equal(back.occupied_codes(), m.occupied_codes())
+    # the reloaded map keeps updating like the original: the same voxels, the same log-odds
+    for scan in world_scans(2, 150, seed=13):
+        back.integrate(scan)
+        m.integrate(scan)
+    a, b = m.leaves(), back.leaves()
+    assert np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)

@@ -92,23 +92,38 @@ def _drop_record(r, R, free, meta, tab_key):
     meta[M_LIVE] -= 1
 
 
+PRESENCE_BITS = 1 << 24  # 2 MiB bitmap: "a record may exist for this code" (no false negatives)
+
+
+@njit(cache=True, inline="always")
+def _presence_bit(code):
+    return ((code * _MULT) >> 32) & (PRESENCE_BITS - 1)
+
+
 @njit(cache=True)
 def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_free, R, free, meta, tab_key, tab_val,
-                 out_touched, out_new, out_changed):
+                 presence, out_touched, out_new, out_changed):
     """Alg. 1 + occupancy check. Hits create voxels (prior l_init); misses update only voxels the
-    occupancy map holds (known-free space is never stored). Returns (n touched, n occ-changed)."""
+    occupancy map holds (known-free space is never stored): most misses fall in empty space, so a
+    presence bitmap (set when a voxel enters the occupancy map, never cleared) skips their look-up.
+    Returns (n touched, n occ-changed)."""
     rec_code, rec_l, rec_state, rec_in_occ, rec_inf, rec_radius, rec_prev, rec_next, rec_hits, rec_misses, rec_last = R
     nt = 0
     nc = 0
     for i in range(packed.shape[0]):
         code = packed[i] >> 1
         hit = (packed[i] & 1) == 1
+        bit = _presence_bit(code)
+        if not hit and (presence[bit >> 6] >> (bit & 63)) & 1 == 0:
+            continue
         r = find(tab_key, tab_val, code)
         is_new = False
         if hit:
             if r < 0:
                 r = _new_record(code, R, free, meta, tab_key, tab_val)
             if rec_in_occ[r] == 0:
+                # entering the occupancy map (new, or until now only inflated): misses apply from now on
+                presence[bit >> 6] |= np.int64(1) << (bit & 63)
                 rec_in_occ[r] = 1
                 rec_l[r] = l_init
                 rec_state[r] = 2
@@ -292,3 +307,35 @@ def rehash(tab_key, tab_val, rec_code, rec_state, n_records):
                 s = (s + 1) & mask
             tab_key[s] = rec_code[r]
             tab_val[s] = r
+
+
+
+
+@njit(cache=True)
+def load_records(codes, values, l_occ, l_free, R, free, meta, tab_key, tab_val, presence):
+    """Snapshot load: every stored voxel back into the occupancy map (inflation is rebuilt as
+    the map is used again)."""
+    for i in range(codes.shape[0]):
+        r = _new_record(codes[i], R, free, meta, tab_key, tab_val)
+        v = values[i]
+        R[1][r] = v
+        R[3][r] = 1
+        R[2][r] = 1 if v > l_occ else (0 if v < l_free else 2)
+        bit = _presence_bit(codes[i])
+        presence[bit >> 6] |= np.int64(1) << (bit & 63)
+
+
+@njit(cache=True)
+def restore(radius, last, hits, misses, history, offsets, offset_start, R, free, meta, tab_key, tab_val):
+    """After load_records (same order as the stored voxels): per-voxel radius, stamps and counts,
+    the inflation map re-derived from the radii, and the history list in its stored order."""
+    n = radius.shape[0]
+    for r in range(n):
+        R[8][r] = hits[r]
+        R[9][r] = misses[r]
+        R[10][r] = last[r]
+        if radius[r] >= 0:
+            R[5][r] = radius[r]
+            _inflate_one(r, 1, radius[r], offsets, offset_start, R, free, meta, tab_key, tab_val)
+    for i in range(history.shape[0]):
+        _push_back(history[i], R, meta)

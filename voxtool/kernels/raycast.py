@@ -59,9 +59,25 @@ class BrickBuffers:
         self.bricks = np.empty(capacity, dtype=np.int64)
 
     def reset(self, used: int) -> None:
-        self.tab.fill(-1)
+        if used * 16 < self.tab.shape[0]:
+            # few bricks: clear just their slots (probe chains start at their home slot)
+            reset_slots(self.tab, self.bricks[:used])
+        else:
+            self.tab.fill(-1)
         self.touched[:used] = 0
         self.occ[:used] = 0
+
+
+@njit(cache=True, nogil=True)
+def reset_slots(tab, bricks):
+    """Clear the table entries of these bricks (and the probe runs they sit in)."""
+    tmask = tab.shape[0] - 1
+    for i in range(bricks.shape[0]):
+        s = _brick_slot(bricks[i], tmask)
+        while tab[s, 1] != -1:
+            tab[s, 0] = -1
+            tab[s, 1] = -1
+            s = (s + 1) & tmask
 
 
 @njit(cache=True, nogil=True)

@@ -53,6 +53,7 @@ class HashVoxelMap:
         self.tab_key = np.full(4096, K.EMPTY, dtype=np.int64)
         self.tab_val = np.zeros(4096, dtype=np.int64)
         self.meta = np.array([-1, -1, 0, 0, 0, 0, 0], dtype=np.int64)
+        self.presence = np.zeros(K.PRESENCE_BITS // 64, dtype=np.int64)
         self.offsets, self.offset_start = sphere_offsets(self.radius_vox)
         self.scan_metrics: list[dict] = []
         self.newly_occupied: np.ndarray = np.zeros(0, np.int64)
@@ -137,7 +138,7 @@ class HashVoxelMap:
         nt, nc = K.input_update(packed, stamp, np.float32(logodds(v["p_init"])), np.float32(s.hit_log),
                                 np.float32(s.miss_log), np.float32(s.clamp_min_log), np.float32(s.clamp_max_log),
                                 np.float32(s.threshold_log), np.float32(logodds(self.p_free)), self.records, self.free,
-                                self.meta, self.tab_key, self.tab_val, touched, new, changed)
+                                self.meta, self.tab_key, self.tab_val, self.presence, touched, new, changed)
         state = self.records[2]
         ch = changed[:nc]
         self.newly_occupied = self.records[0][ch[state[ch] == 1]].copy()
@@ -213,20 +214,54 @@ class HashVoxelMap:
         return int(self.leaves().codes.shape[0]), 0
 
     def memory_bytes(self) -> int:
-        return int(sum(a.nbytes for a in self.records) + self.free.nbytes + self.tab_key.nbytes + self.tab_val.nbytes)
+        return int(sum(a.nbytes for a in self.records) + self.free.nbytes + self.tab_key.nbytes + self.tab_val.nbytes
+                   + self.presence.nbytes)
+
+    def _history(self) -> np.ndarray:
+        """Record indices of the history list, oldest first."""
+        out = np.empty(int(self.meta[K.M_HSIZE]), dtype=np.int64)
+        r, k = int(self.meta[K.M_HEAD]), 0
+        nxt = self.records[7]
+        while r >= 0 and k < out.shape[0]:  # a snapshot write, not a hot path
+            out[k] = r
+            r = int(nxt[r])
+            k += 1
+        return out
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        lv = self.leaves()
-        return {"leaf_codes": lv.codes, "leaf_depths": lv.depths, "leaf_values": lv.values}
+        """Occupancy-map voxels (Morton order) plus what makes the map resume exactly: each
+        voxel's inflation radius, last-update stamp, hit/miss counts, and the history order."""
+        r = self._live()
+        r = r[self.records[3][r] == 1]
+        r = r[np.argsort(self.records[0][r])]
+        position = np.full(int(self.meta[K.M_NEXT]), -1, dtype=np.int64)
+        position[r] = np.arange(r.shape[0])
+        return {"leaf_codes": self.records[0][r].copy(), "leaf_depths": np.full(r.shape[0], 16, np.uint8),
+                "leaf_values": self.records[1][r].copy(), "hm_radius": self.records[5][r].astype(np.int32),
+                "hm_last": self.records[10][r].copy(), "hm_hits": self.records[8][r].copy(),
+                "hm_misses": self.records[9][r].copy(), "hm_history": position[self._history()]}
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
+        from voxtool.errors import FormatError
+
         codes, values = arrays["leaf_codes"], arrays["leaf_values"]
-        self._reserve(codes.shape[0])
-        for code, value in zip(codes.tolist(), values.tolist()):  # snapshot load, not a hot path
-            r = K._new_record(np.int64(code), self.records, self.free, self.meta, self.tab_key, self.tab_val)
-            self.records[1][r] = value
-            self.records[3][r] = 1
-            self.records[2][r] = 1 if value > self.sensor.threshold_log else (0 if value < logodds(self.p_free) else 2)
+        n = codes.shape[0]
+        extra = [arrays.get(k) for k in ("hm_radius", "hm_last", "hm_hits", "hm_misses", "hm_history")]
+        if any(a is None for a in extra) or any(a.shape[0] != n for a in extra[:4]):
+            raise FormatError("hashmap snapshot: per-voxel arrays missing or of the wrong length")
+        radius, last, hits, misses, history = extra
+        if np.any(radius > 64) or np.any(history < 0) or np.any(history >= n) or np.unique(history).size != history.size:
+            raise FormatError("hashmap snapshot: inflation radius or history out of range")
+        max_r = int(max(radius.max(initial=0), self.radius_vox))
+        if max_r + 1 >= self.offset_start.shape[0]:
+            self.offsets, self.offset_start = sphere_offsets(max_r)
+        sphere = int(self.offset_start[max_r + 1] - self.offset_start[max_r])
+        self._reserve(n + int((radius >= 0).sum()) * sphere)
+        K.load_records(codes, values, np.float32(self.sensor.threshold_log), np.float32(logodds(self.p_free)),
+                       self.records, self.free, self.meta, self.tab_key, self.tab_val, self.presence)
+        K.restore(radius.astype(np.int32), last.astype(np.int64), hits.astype(np.int32), misses.astype(np.int32),
+                  history.astype(np.int64), self.offsets, self.offset_start, self.records, self.free, self.meta,
+                  self.tab_key, self.tab_val)
 
     def extra_meta(self) -> dict[str, Any]:
         return {k: self.values[k] for k in ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")} | {"p_free": self.p_free}
