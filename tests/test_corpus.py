@@ -33,3 +33,22 @@ def test_bad_input(tmp_path, case):
     for out in outputs:
         assert out.read_bytes() == b"previous result"
     assert not list(tmp_path.rglob(".voxtool-tmp-*"))
+
+
+def test_empty_and_all_nan_scans_are_valid_input(tmp_path):
+    """Not errors: an empty scan changes nothing, a scan of NaNs is dropped point by point."""
+    import json
+
+    import numpy as np
+    from scenes import write_pcd
+
+    d = tmp_path / "scans"
+    d.mkdir()
+    write_pcd(d / "0.pcd", np.zeros((0, 3), np.float32))
+    write_pcd(d / "1.pcd", np.full((5, 3), np.nan, np.float32))
+    write_pcd(d / "2.pcd", np.array([[1.0, 0.5, 0.2]], np.float32))
+    result = CliRunner().invoke(main, ["build", str(d), "--json", "-o", str(tmp_path / "m.vxm")])
+    assert result.exit_code == 0, result.stderr
+    stats = json.loads(result.stdout)
+    assert stats["scans"] == 3 and stats["points"] == 6 and stats["points_dropped"] == 5
+    assert stats["occupied_voxels"] == 1

@@ -306,3 +306,29 @@ CASES = [
     ("packet declares 4 GB box", packet_log_case(blob_edit=huge_box), 5, "exceeds the key range or 2147483648 cells"),
     ("packet future version", packet_log_case(blob_edit=lambda b: b[:4] + bytes([7]) + b[5:]), 5, "packet version 7 is not supported"),
 ]
+
+
+def flip_in_first_chunk(blob: bytes) -> bytes:
+    """Flip a byte in the middle of the first chunk record (opcode 0x06) of an MCAP file."""
+    i = blob.index(b"\x06", 8)
+    j = i + 9 + 200
+    return blob[:j] + bytes([blob[j] ^ 0x40]) + blob[j + 1 :]
+
+
+def mcap_without_schema(tmp):
+    from mcap.writer import Writer
+
+    path = tmp / "in.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2", library="test")
+        ch = w.register_channel("/points", "cdr", 0)  # schema id 0: no schema
+        w.add_message(ch, 0, b"\0" * 64, 0)
+        w.finish()
+    return build(tmp, path)
+
+
+CASES += [
+    ("mcap chunk corrupted", mcap_case(mutate=flip_in_first_chunk), 3, "corrupt MCAP while reading poses"),
+    ("mcap channel without schema", mcap_without_schema, 3, "found 0 PointCloud2 topics (none); choose one with --topic"),
+]

@@ -83,7 +83,7 @@ def read_log(path: str | Path, handle=None) -> tuple[dict[str, dict], Iterator[t
         except OSError as err:
             raise FormatError(f"{path}: cannot read: {err.strerror}") from err
     try:
-        reader = make_reader(handle)
+        reader = make_reader(handle, validate_crcs=True)
         meta = {}
         for record in reader.iter_metadata():
             if record.name == "voxtool":

@@ -16,6 +16,16 @@ from voxtool.sources.pcd import MAX_POINTS
 CLOUD = "sensor_msgs/msg/PointCloud2"
 TF = "tf2_msgs/msg/TFMessage"
 POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped")
+def _decode_errors() -> tuple:
+    """Exceptions the mcap / ROS 2 decoders raise on corrupt bytes (turned into SourceError)."""
+    import struct
+
+    import zstandard
+    from mcap.exceptions import McapError
+
+    return (McapError, ValueError, EOFError, KeyError, IndexError, AssertionError, struct.error, zstandard.ZstdError)
+
+
 _PF_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 STAMP_TOLERANCE_NS = 1_000_000  # a cloud this close outside a transform's time range uses its end value
 
@@ -91,7 +101,6 @@ class McapCloudSource:
     """Streams (sensor points, pose, stamp, raw bytes) from a ROS 2 MCAP file."""
 
     def __init__(self, path: str | Path, topic: str | None, world_frame: str | None, pose_topic: str | None) -> None:
-        from mcap.exceptions import McapError
         from mcap.reader import make_reader
 
         self.path = Path(path)
@@ -99,11 +108,11 @@ class McapCloudSource:
         self.pose_topic = pose_topic
         try:
             self._handle = open(self.path, "rb")
-            self._reader = make_reader(self._handle, decoder_factories=[_decoder_factory()])
+            self._reader = make_reader(self._handle, decoder_factories=[_decoder_factory()], validate_crcs=True)
             summary = self._reader.get_summary()
         except OSError as err:
             raise SourceError(f"{self.path}: cannot read: {err.strerror}") from err
-        except (McapError, ValueError, EOFError, AssertionError) as err:
+        except _decode_errors() as err:
             raise SourceError(f"{self.path}: not a readable MCAP file ({err})") from err
         if summary is None:
             raise SourceError(f"{self.path}: MCAP has no summary section (truncated or not finished)")
@@ -127,7 +136,6 @@ class McapCloudSource:
         self._sensor_poses: StampedPoses | None = None
 
     def _load_poses(self) -> None:
-        from mcap.exceptions import McapError
 
         try:
             if self.pose_topic is not None:
@@ -148,7 +156,7 @@ class McapCloudSource:
                     if series.stamps and stamp < series.stamps[-1]:
                         raise SourceError(f"{self.path}: transform {key[0]} -> {key[1]} stamps go backwards at {stamp} ns")
                     series.add(stamp, _pose_of(tr.transform.translation, tr.transform.rotation))
-        except (McapError, ValueError, EOFError) as err:
+        except _decode_errors() as err:
             raise SourceError(f"{self.path}: corrupt MCAP while reading poses ({err})") from err
 
     def _root_of(self, frame: str) -> str:
@@ -205,7 +213,6 @@ class McapCloudSource:
         return pose
 
     def scans(self) -> Iterator[tuple[np.ndarray, Pose, int, int]]:
-        from mcap.exceptions import McapError
 
         self._load_poses()
         index = 0
@@ -221,7 +228,7 @@ class McapCloudSource:
                     pose = self._chain(msg.header.frame_id.lstrip("/"), stamp)
                 yield points, pose, stamp, len(message.data)
                 index += 1
-        except (McapError, ValueError, EOFError, KeyError) as err:
+        except _decode_errors() as err:
             raise SourceError(f"{self.path}: corrupt MCAP at message {index} of '{self.topic}' ({err})") from err
 
 
