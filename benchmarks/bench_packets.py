@@ -128,6 +128,36 @@ def split(data: Path) -> dict:
     return rows
 
 
+def lossless(data: Path) -> dict:
+    """Decode every scheme/codec log of the real streams and compare with the robot's own map."""
+    from voxtool.codec.encode import EncodeOptions, encode_stream
+    from voxtool.codec.fusion import fuse
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.keys import expand_leaves
+    from voxtool.maps import make_backend
+    from voxtool.sources import SourceOptions, open_source
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, rel, res in STREAMS:
+            src = data / rel
+            for scheme in ("hilbert", "nested", "racer"):
+                for codec in ("zstd", "zlib", "none"):
+                    backend = make_backend("octree", MapParams(res), SensorModel())
+                    log = Path(tmp) / f"{name}_{scheme}_{codec}.mcap"
+                    encode_stream(open_source(src, SourceOptions()), backend, log,
+                                  EncodeOptions(scheme=scheme, codec=codec), {}, progress=False)
+                    lv = backend.leaves()
+                    codes = expand_leaves(lv.codes, lv.depths)
+                    states = np.repeat((lv.values > 0).astype(np.uint8), np.left_shift(1, 3 * (16 - lv.depths.astype(np.int64))))
+                    got = fuse([log])
+                    equal = bool(np.array_equal(got.codes, codes) and np.array_equal(got.states, states))
+                    rows.append({"dataset": name, "scheme": scheme, "codec": codec, "voxels": int(codes.size),
+                                 "decoded_equals_map": equal})
+                    print(json.dumps(rows[-1]))
+    return {"rows": rows}
+
+
 def throughput() -> dict:
     from voxtool.codec.hilbert import box_order
     from voxtool.codec.packet import decode_packet, encode_packet
@@ -161,12 +191,12 @@ def throughput() -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("mode", choices=["fig5", "streams", "throughput", "split"])
+    ap.add_argument("mode", choices=["fig5", "streams", "throughput", "split", "lossless"])
     ap.add_argument("--samples", type=int, default=10)
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
     args = ap.parse_args()
     result = {"fig5": lambda: fig5(args.samples), "streams": lambda: streams(Path(args.data)), "throughput": throughput,
-              "split": lambda: split(Path(args.data))}[args.mode]()
+              "split": lambda: split(Path(args.data)), "lossless": lambda: lossless(Path(args.data))}[args.mode]()
     OUT.mkdir(exist_ok=True)
     (OUT / f"packets_{args.mode}.json").write_text(json.dumps(result, indent=2, default=str))
 

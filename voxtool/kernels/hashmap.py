@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from voxtool.kernels.morton import compact16, morton3
+
 EMPTY = -1
 TOMB = -2
 NOT_IN_HISTORY = -2
@@ -152,41 +154,21 @@ def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_fr
     return nt, nc
 
 
-@njit(cache=True, inline="always")
-def _spread(v):
-    v = v & 0xFFFF
-    v = (v | (v << 16)) & 0x0000FF0000FF
-    v = (v | (v << 8)) & 0x00F00F00F00F
-    v = (v | (v << 4)) & 0x0C30C30C30C3
-    v = (v | (v << 2)) & 0x249249249249
-    return v
-
-
-@njit(cache=True, inline="always")
-def _compact(v):
-    v = v & 0x249249249249
-    v = (v | (v >> 2)) & 0x0C30C30C30C3
-    v = (v | (v >> 4)) & 0x00F00F00F00F
-    v = (v | (v >> 8)) & 0x0000FF0000FF
-    v = (v | (v >> 16)) & 0xFFFF
-    return v
-
-
 @njit(cache=True)
 def _inflate_one(r, sign, radius, offsets, offset_start, R, free, meta, tab_key, tab_val):
     """Add (sign=1) or remove (sign=-1) r's inflation over the sphere of `radius` voxels."""
     rec_in_occ, rec_inf = R[3], R[4]
     code = R[0][r]
-    x = _compact(code)
-    y = _compact(code >> 1)
-    z = _compact(code >> 2)
+    x = compact16(code)
+    y = compact16(code >> 1)
+    z = compact16(code >> 2)
     for j in range(offset_start[radius], offset_start[radius + 1]):
         nx = x + offsets[j, 0]
         ny = y + offsets[j, 1]
         nz = z + offsets[j, 2]
         if nx < 0 or ny < 0 or nz < 0 or nx > 65535 or ny > 65535 or nz > 65535:
             continue
-        c = _spread(nx) | (_spread(ny) << 1) | (_spread(nz) << 2)
+        c = morton3(nx, ny, nz)
         t = find(tab_key, tab_val, c)
         if sign > 0:
             if t < 0:
@@ -211,9 +193,9 @@ def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, o
         if rec_state[r] < 0:
             continue
         code = R[0][r]
-        px = (np.float64(_compact(code)) - 32768 + 0.5) * resolution - sx
-        py = (np.float64(_compact(code >> 1)) - 32768 + 0.5) * resolution - sy
-        pz = (np.float64(_compact(code >> 2)) - 32768 + 0.5) * resolution - sz
+        px = (np.float64(compact16(code)) - 32768 + 0.5) * resolution - sx
+        py = (np.float64(compact16(code >> 1)) - 32768 + 0.5) * resolution - sy
+        pz = (np.float64(compact16(code >> 2)) - 32768 + 0.5) * resolution - sz
         if inf_range >= 0 and px * px + py * py + pz * pz > inf_range * inf_range:
             continue
         if rec_state[r] == 1 and rec_radius[r] < 0:

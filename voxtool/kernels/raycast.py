@@ -11,29 +11,89 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from voxtool.kernels.morton import morton3
+
 EMPTY = np.int64(-1)
 _HASH_MULT = np.int64(-7046029254386353131)  # 0x9E3779B97F4A7C15 as int64 (Fibonacci hashing)
-
-
-@njit(cache=True, inline="always")
-def _spread16(v):
-    v = v & 0xFFFF
-    v = (v | (v << 16)) & 0x0000FF0000FF
-    v = (v | (v << 8)) & 0x00F00F00F00F
-    v = (v | (v << 4)) & 0x0C30C30C30C3
-    v = (v | (v << 2)) & 0x249249249249
-    return v
-
-
-@njit(cache=True, inline="always")
-def morton3(kx, ky, kz):
-    return _spread16(np.int64(kx)) | (_spread16(np.int64(ky)) << 1) | (_spread16(np.int64(kz)) << 2)
 
 
 @njit(cache=True, inline="always")
 def _coord_key(c, res_factor):
     # OctoMap coordToKey: floor(resolution_factor * double(coord)) + 32768
     return np.int64(np.floor(res_factor * np.float64(c))) + 32768
+
+
+@njit(cache=True, inline="always")
+def _ray_end(points, i, ox, oy, oz, max_range, mr32, res_factor, end_key):
+    """End of ray i (OctoMap computeUpdate): a point beyond max_range is replaced by the point at
+    max_range on its ray and marks no hit (cut = 1). Writes end_key; returns (dx, dy, dz, cut)."""
+    ex = points[i, 0]
+    ey = points[i, 1]
+    ez = points[i, 2]
+    dx = ex - ox
+    dy = ey - oy
+    dz = ez - oz
+    cut = 0
+    if max_range >= 0.0:
+        norm = np.sqrt(np.float64(dx * dx + dy * dy + dz * dz))
+        if norm > max_range:
+            cut = 1
+            # Vector3::normalized(), then origin + direction * (float) maxrange
+            ln = np.float32(norm)
+            ex = ox + (dx / ln) * mr32
+            ey = oy + (dy / ln) * mr32
+            ez = oz + (dz / ln) * mr32
+            dx = ex - ox
+            dy = ey - oy
+            dz = ez - oz
+    end_key[0] = _coord_key(ex, res_factor)
+    end_key[1] = _coord_key(ey, res_factor)
+    end_key[2] = _coord_key(ez, res_factor)
+    return dx, dy, dz, cut
+
+
+@njit(cache=True, inline="always")
+def _ray_start(dx, dy, dz, okx, oky, okz, o64, resolution, key, direction, step, t_max, t_delta):
+    """OctoMap computeRayKeys' initialisation: float32 direction and length, float64 tMax/tDelta
+    from the voxel border plus a float32-rounded half resolution. Returns the ray length."""
+    key[0] = okx
+    key[1] = oky
+    key[2] = okz
+    length = np.float32(np.sqrt(np.float64(dx * dx + dy * dy + dz * dz)))
+    direction[0] = dx / length
+    direction[1] = dy / length
+    direction[2] = dz / length
+    for a in range(3):
+        if direction[a] > 0.0:
+            step[a] = 1
+        elif direction[a] < 0.0:
+            step[a] = -1
+        else:
+            step[a] = 0
+        if step[a] != 0:
+            border = (np.float64(key[a] - 32768) + 0.5) * resolution
+            border += np.float64(np.float32(step[a] * resolution * 0.5))
+            t_max[a] = (border - o64[a]) / np.float64(direction[a])
+            t_delta[a] = resolution / abs(np.float64(direction[a]))
+        else:
+            t_max[a] = 1.7976931348623157e308
+            t_delta[a] = 1.7976931348623157e308
+    return np.float64(length)
+
+
+@njit(cache=True, inline="always")
+def _ray_advance(key, step, t_max, t_delta, end_key, length64):
+    """One Amanatides-Woo step with OctoMap's tie-breaking; True when the ray is done (the end
+    voxel is reached, or the next border lies beyond the ray's length)."""
+    if t_max[0] < t_max[1]:
+        dim = 0 if t_max[0] < t_max[2] else 2
+    else:
+        dim = 1 if t_max[1] < t_max[2] else 2
+    key[dim] += step[dim]
+    t_max[dim] += t_delta[dim]
+    if key[0] == end_key[0] and key[1] == end_key[1] and key[2] == end_key[2]:
+        return True
+    return min(t_max[0], min(t_max[1], t_max[2])) > length64
 
 
 BRICK_BITS = 9  # a brick is the 8x8x8 voxels sharing code >> 9; its voxels are Morton-ordered inside
@@ -118,61 +178,21 @@ def scan_bricks(points, origin, resolution, max_range, tab, touched, occ, bricks
     t_delta = np.empty(3, dtype=np.float64)
     last_brick = np.int64(-1)
     bi = 0
+    length64 = 0.0
     # pass 0: endpoints (occupied), pass 1: free voxels along the rays (OctoMap computeRayKeys)
     for pass_ in range(2):
         for i in range(n):
-            ex = points[i, 0]
-            ey = points[i, 1]
-            ez = points[i, 2]
-            dx = ex - ox
-            dy = ey - oy
-            dz = ez - oz
-            if max_range >= 0.0:
-                norm = np.sqrt(np.float64(dx * dx + dy * dy + dz * dz))
-                if norm > max_range:
-                    if pass_ == 0:
-                        continue
-                    # Vector3::normalized(), then origin + direction * (float) maxrange
-                    ln = np.float32(norm)
-                    ex = ox + (dx / ln) * mr32
-                    ey = oy + (dy / ln) * mr32
-                    ez = oz + (dz / ln) * mr32
-                    dx = ex - ox
-                    dy = ey - oy
-                    dz = ez - oz
-            end_key[0] = _coord_key(ex, res_factor)
-            end_key[1] = _coord_key(ey, res_factor)
-            end_key[2] = _coord_key(ez, res_factor)
+            dx, dy, dz, cut = _ray_end(points, i, ox, oy, oz, max_range, mr32, res_factor, end_key)
             if pass_ == 0:
+                if cut:
+                    continue  # a cut ray marks no endpoint
                 key[0] = end_key[0]
                 key[1] = end_key[1]
                 key[2] = end_key[2]
             else:
                 if end_key[0] == okx and end_key[1] == oky and end_key[2] == okz:
                     continue
-                key[0] = okx
-                key[1] = oky
-                key[2] = okz
-                length = np.float32(np.sqrt(np.float64(dx * dx + dy * dy + dz * dz)))
-                direction[0] = dx / length
-                direction[1] = dy / length
-                direction[2] = dz / length
-                for a in range(3):
-                    if direction[a] > 0.0:
-                        step[a] = 1
-                    elif direction[a] < 0.0:
-                        step[a] = -1
-                    else:
-                        step[a] = 0
-                    if step[a] != 0:
-                        border = (np.float64(key[a] - 32768) + 0.5) * resolution
-                        border += np.float64(np.float32(step[a] * resolution * 0.5))
-                        t_max[a] = (border - o64[a]) / np.float64(direction[a])
-                        t_delta[a] = resolution / abs(np.float64(direction[a]))
-                    else:
-                        t_max[a] = 1.7976931348623157e308
-                        t_delta[a] = 1.7976931348623157e308
-                length64 = np.float64(length)
+                length64 = _ray_start(dx, dy, dz, okx, oky, okz, o64, resolution, key, direction, step, t_max, t_delta)
             while True:
                 code = morton3(key[0], key[1], key[2])
                 brick = code >> BRICK_BITS
@@ -202,16 +222,7 @@ def scan_bricks(points, origin, resolution, max_range, tab, touched, occ, bricks
                 if pass_ == 0:
                     break
                 steps += 1
-                # advance (Amanatides-Woo with OctoMap's tie-breaking and stop rules)
-                if t_max[0] < t_max[1]:
-                    dim = 0 if t_max[0] < t_max[2] else 2
-                else:
-                    dim = 1 if t_max[1] < t_max[2] else 2
-                key[dim] += step[dim]
-                t_max[dim] += t_delta[dim]
-                if key[0] == end_key[0] and key[1] == end_key[1] and key[2] == end_key[2]:
-                    break
-                if min(t_max[0], min(t_max[1], t_max[2])) > length64:
+                if _ray_advance(key, step, t_max, t_delta, end_key, length64):
                     break
     return n_bricks, steps
 
@@ -288,64 +299,14 @@ def ray_signatures(points, origin, resolution, max_range, out_end, out_sig):
     t_max = np.empty(3, dtype=np.float64)
     t_delta = np.empty(3, dtype=np.float64)
     for i in range(points.shape[0]):
-        ex = points[i, 0]
-        ey = points[i, 1]
-        ez = points[i, 2]
-        dx = ex - ox
-        dy = ey - oy
-        dz = ez - oz
-        cut = np.int64(0)
-        if max_range >= 0.0:
-            norm = np.sqrt(np.float64(dx * dx + dy * dy + dz * dz))
-            if norm > max_range:
-                cut = np.int64(1)  # a cut ray marks no endpoint: never merge it with a hit
-                ln = np.float32(norm)
-                ex = ox + (dx / ln) * mr32
-                ey = oy + (dy / ln) * mr32
-                ez = oz + (dz / ln) * mr32
-                dx = ex - ox
-                dy = ey - oy
-                dz = ez - oz
-        end_key[0] = _coord_key(ex, res_factor)
-        end_key[1] = _coord_key(ey, res_factor)
-        end_key[2] = _coord_key(ez, res_factor)
+        dx, dy, dz, cut = _ray_end(points, i, ox, oy, oz, max_range, mr32, res_factor, end_key)
+        # a cut ray marks no endpoint: never merge it with a hit
         out_end[i] = (morton3(end_key[0], end_key[1], end_key[2]) << 1) | cut
         sig = np.int64(0)
         if not (end_key[0] == okx and end_key[1] == oky and end_key[2] == okz):
-            key[0] = okx
-            key[1] = oky
-            key[2] = okz
-            length = np.float32(np.sqrt(np.float64(dx * dx + dy * dy + dz * dz)))
-            direction[0] = dx / length
-            direction[1] = dy / length
-            direction[2] = dz / length
-            for a in range(3):
-                if direction[a] > 0.0:
-                    step[a] = 1
-                elif direction[a] < 0.0:
-                    step[a] = -1
-                else:
-                    step[a] = 0
-                if step[a] != 0:
-                    border = (np.float64(key[a] - 32768) + 0.5) * resolution
-                    border += np.float64(np.float32(step[a] * resolution * 0.5))
-                    t_max[a] = (border - o64[a]) / np.float64(direction[a])
-                    t_delta[a] = resolution / abs(np.float64(direction[a]))
-                else:
-                    t_max[a] = 1.7976931348623157e308
-                    t_delta[a] = 1.7976931348623157e308
-            length64 = np.float64(length)
+            length64 = _ray_start(dx, dy, dz, okx, oky, okz, o64, resolution, key, direction, step, t_max, t_delta)
             while True:
-                code = morton3(key[0], key[1], key[2])
-                sig = (sig ^ code) * _HASH_MULT + 0x632BE59BD9B4E019
-                if t_max[0] < t_max[1]:
-                    dim = 0 if t_max[0] < t_max[2] else 2
-                else:
-                    dim = 1 if t_max[1] < t_max[2] else 2
-                key[dim] += step[dim]
-                t_max[dim] += t_delta[dim]
-                if key[0] == end_key[0] and key[1] == end_key[1] and key[2] == end_key[2]:
-                    break
-                if min(t_max[0], min(t_max[1], t_max[2])) > length64:
+                sig = (sig ^ morton3(key[0], key[1], key[2])) * _HASH_MULT + 0x632BE59BD9B4E019
+                if _ray_advance(key, step, t_max, t_delta, end_key, length64):
                     break
         out_sig[i] = sig

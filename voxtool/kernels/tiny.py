@@ -11,21 +11,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from voxtool.kernels.morton import compact16, morton3
+
 T_FREE_TOP = 0  # meta: number of free-list entries
 T_NEXT = 1  # next never-used block
 T_BLOCKS = 2  # pool capacity in blocks
 T_DROPPED = 3  # updates dropped because no block was left
 T_OUTSIDE = 4  # updates outside the map extent
-
-
-@njit(cache=True, inline="always")
-def _compact(v):
-    v = v & 0x249249249249
-    v = (v | (v >> 2)) & 0x0C30C30C30C3
-    v = (v | (v >> 4)) & 0x00F00F00F00F
-    v = (v | (v >> 8)) & 0x0000FF0000FF
-    v = (v | (v >> 16)) & 0xFFFF
-    return v
 
 
 @njit(cache=True, inline="always")
@@ -50,9 +42,9 @@ def tiny_apply(pool, free, meta, packed, offset, depth, hit, miss, prior, lmin, 
     for i in range(packed.shape[0]):
         code = packed[i] >> 1
         step = hit if (packed[i] & 1) else -miss
-        x = _compact(code) - offset
-        y = _compact(code >> 1) - offset
-        z = _compact(code >> 2) - offset
+        x = compact16(code) - offset
+        y = compact16(code >> 1) - offset
+        z = compact16(code >> 2) - offset
         if x < 0 or y < 0 or z < 0 or x >= size or y >= size or z >= size:
             meta[T_OUTSIDE] += 1
             continue
@@ -151,13 +143,7 @@ def tiny_leaves(pool, offset, depth, out_codes, out_depth, out_level):
         if s < 0 or (w >> 4) == 0:
             lvl = w & 15
             if lvl != 0:
-                kx, ky, kz = x + offset, y + offset, z + offset
-                code = np.int64(0)
-                for bit in range(16):
-                    code |= ((kx >> bit) & 1) << (3 * bit)
-                    code |= ((ky >> bit) & 1) << (3 * bit + 1)
-                    code |= ((kz >> bit) & 1) << (3 * bit + 2)
-                out_codes[k] = code
+                out_codes[k] = morton3(x + offset, y + offset, z + offset)
                 out_depth[k] = 16 - (depth - d)
                 out_level[k] = lvl
                 k += 1

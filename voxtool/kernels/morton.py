@@ -1,0 +1,35 @@
+"""Morton codes inside compiled kernels (voxtool.keys has the numpy twins for whole arrays).
+
+48-bit codes in int64: key bits interleaved ... z1 y1 x1 z0 y0 x0 (see voxtool.keys)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, inline="always")
+def spread16(v):
+    """16 key bits -> every third bit of 48."""
+    v = v & 0xFFFF
+    v = (v | (v << 16)) & 0x0000FF0000FF
+    v = (v | (v << 8)) & 0x00F00F00F00F
+    v = (v | (v << 4)) & 0x0C30C30C30C3
+    v = (v | (v << 2)) & 0x249249249249
+    return v
+
+
+@njit(cache=True, inline="always")
+def compact16(v):
+    """Every third bit of 48 -> 16 key bits (inverse of spread16)."""
+    v = v & 0x249249249249
+    v = (v | (v >> 2)) & 0x0C30C30C30C3
+    v = (v | (v >> 4)) & 0x00F00F00F00F
+    v = (v | (v >> 8)) & 0x0000FF0000FF
+    v = (v | (v >> 16)) & 0xFFFF
+    return v
+
+
+@njit(cache=True, inline="always")
+def morton3(kx, ky, kz):
+    return spread16(np.int64(kx)) | (spread16(np.int64(ky)) << 1) | (spread16(np.int64(kz)) << 2)
