@@ -151,7 +151,9 @@ def scan_bricks(points, origin, resolution, max_range, tab, touched, occ, bricks
     max_range < 0 means unlimited. Coordinates must already be checked to lie in key range.
     Consecutive DDA steps stay in one brick for several steps, so the brick table is consulted
     rarely and the masks stay in cache. (The buffers are never reallocated in here: an array
-    reassigned inside the loop stops numba from hoisting its loads, which cost 3x.)
+    reassigned inside the loop stops numba from hoisting its loads, which cost 3x. The DDA is
+    written out here rather than through the _ray_* helpers that ray_signatures uses: they
+    measured 20-25 % slower in this, the hottest loop.)
     """
     capacity = bricks.shape[0]
     tmask = tab.shape[0] - 1
@@ -178,21 +180,61 @@ def scan_bricks(points, origin, resolution, max_range, tab, touched, occ, bricks
     t_delta = np.empty(3, dtype=np.float64)
     last_brick = np.int64(-1)
     bi = 0
-    length64 = 0.0
     # pass 0: endpoints (occupied), pass 1: free voxels along the rays (OctoMap computeRayKeys)
     for pass_ in range(2):
         for i in range(n):
-            dx, dy, dz, cut = _ray_end(points, i, ox, oy, oz, max_range, mr32, res_factor, end_key)
+            ex = points[i, 0]
+            ey = points[i, 1]
+            ez = points[i, 2]
+            dx = ex - ox
+            dy = ey - oy
+            dz = ez - oz
+            if max_range >= 0.0:
+                norm = np.sqrt(np.float64(dx * dx + dy * dy + dz * dz))
+                if norm > max_range:
+                    if pass_ == 0:
+                        continue
+                    # Vector3::normalized(), then origin + direction * (float) maxrange
+                    ln = np.float32(norm)
+                    ex = ox + (dx / ln) * mr32
+                    ey = oy + (dy / ln) * mr32
+                    ez = oz + (dz / ln) * mr32
+                    dx = ex - ox
+                    dy = ey - oy
+                    dz = ez - oz
+            end_key[0] = _coord_key(ex, res_factor)
+            end_key[1] = _coord_key(ey, res_factor)
+            end_key[2] = _coord_key(ez, res_factor)
             if pass_ == 0:
-                if cut:
-                    continue  # a cut ray marks no endpoint
                 key[0] = end_key[0]
                 key[1] = end_key[1]
                 key[2] = end_key[2]
             else:
                 if end_key[0] == okx and end_key[1] == oky and end_key[2] == okz:
                     continue
-                length64 = _ray_start(dx, dy, dz, okx, oky, okz, o64, resolution, key, direction, step, t_max, t_delta)
+                key[0] = okx
+                key[1] = oky
+                key[2] = okz
+                length = np.float32(np.sqrt(np.float64(dx * dx + dy * dy + dz * dz)))
+                direction[0] = dx / length
+                direction[1] = dy / length
+                direction[2] = dz / length
+                for a in range(3):
+                    if direction[a] > 0.0:
+                        step[a] = 1
+                    elif direction[a] < 0.0:
+                        step[a] = -1
+                    else:
+                        step[a] = 0
+                    if step[a] != 0:
+                        border = (np.float64(key[a] - 32768) + 0.5) * resolution
+                        border += np.float64(np.float32(step[a] * resolution * 0.5))
+                        t_max[a] = (border - o64[a]) / np.float64(direction[a])
+                        t_delta[a] = resolution / abs(np.float64(direction[a]))
+                    else:
+                        t_max[a] = 1.7976931348623157e308
+                        t_delta[a] = 1.7976931348623157e308
+                length64 = np.float64(length)
             while True:
                 code = morton3(key[0], key[1], key[2])
                 brick = code >> BRICK_BITS
@@ -222,7 +264,16 @@ def scan_bricks(points, origin, resolution, max_range, tab, touched, occ, bricks
                 if pass_ == 0:
                     break
                 steps += 1
-                if _ray_advance(key, step, t_max, t_delta, end_key, length64):
+                # advance (Amanatides-Woo with OctoMap's tie-breaking and stop rules)
+                if t_max[0] < t_max[1]:
+                    dim = 0 if t_max[0] < t_max[2] else 2
+                else:
+                    dim = 1 if t_max[1] < t_max[2] else 2
+                key[dim] += step[dim]
+                t_max[dim] += t_delta[dim]
+                if key[0] == end_key[0] and key[1] == end_key[1] and key[2] == end_key[2]:
+                    break
+                if min(t_max[0], min(t_max[1], t_max[2])) > length64:
                     break
     return n_bricks, steps
 
