@@ -35,6 +35,7 @@ def worker(engine: str, source: str, res: float, out: str) -> None:
         m = make_backend("octree", MapParams(resolution=res), SensorModel())
         report = build(open_source(source, SourceOptions()), m, progress=False)
         # reading overlaps ray casting on a helper thread, so wall time includes it; it is small
+        result["peak_rss_bytes"] = _vm_hwm()  # before the .bt export, which builds a second tree
         result.update(insert_s=report.time_total, read_s=report.time_read, jit_s=report.time_jit,
                       raycast_s=report.time_raycast, update_s=report.time_update, ray_steps=report.ray_steps,
                       voxel_updates=report.voxel_updates, memory_bytes=m.memory_bytes())
@@ -53,13 +54,17 @@ def worker(engine: str, source: str, res: float, out: str) -> None:
             tree.insertPointCloud(pts, origin)
             t_read = time.perf_counter()
             insert += t_read - t0
+        result["peak_rss_bytes"] = _vm_hwm()
         result.update(insert_s=insert, read_s=read, memory_bytes=int(tree.memoryUsage()))
         tree.writeBinary(out)
-    # peak resident memory of this process since exec (VmHWM); ru_maxrss would include the
-    # parent's footprint inherited at fork
-    status = Path("/proc/self/status").read_text()
-    result["peak_rss_bytes"] = int(next(ln.split()[1] for ln in status.splitlines() if ln.startswith("VmHWM"))) * 1024
     Path(out + ".json").write_text(json.dumps(result))
+
+
+def _vm_hwm() -> int:
+    """Peak resident memory of this process since exec (VmHWM); ru_maxrss would include the
+    parent's footprint inherited at fork."""
+    status = Path("/proc/self/status").read_text()
+    return int(next(ln.split()[1] for ln in status.splitlines() if ln.startswith("VmHWM"))) * 1024
 
 
 def run_worker(engine: str, source: Path, res: float, out: Path) -> dict:
