@@ -304,3 +304,10 @@ def test_hashmap_build_share_and_relay(tmp_path):
     assert relayed["frames"] == 5 and relayed["n_occ"] >= r["n_occ"]
     assert run("stats", tmp_path / "relayed.vxm")[0] == 0
     assert run("build", "--sample", "--share", share)[0] == 2  # sharing needs the hash map
+
+
+def test_cli_backend_choices_match_the_registry():
+    from voxtool.cli import BACKEND_NAMES
+    from voxtool.maps import BACKENDS
+
+    assert tuple(sorted(BACKENDS)) == BACKEND_NAMES

@@ -13,6 +13,9 @@ from voxtool import __version__
 from voxtool.errors import VoxtoolError
 
 SAMPLE_DIR = Path(__file__).parent / "data" / "sample"
+# voxtool.maps.BACKENDS imports the compiled kernels; the CLI keeps its names here so that
+# `--help` stays instant (tests/test_cli.py checks the two agree)
+BACKEND_NAMES = ("hashmap", "octocache", "octree", "tiny")
 
 
 def handle_errors(func):
@@ -95,10 +98,10 @@ def scan_options(func):
         click.option("--start", default=0, show_default=True, type=int, help="First scan index to use."),
         click.option("--stop", default=None, type=int, help="Stop before this scan index."),
         click.option("--every", default=1, show_default=True, type=int, help="Use every n-th scan."),
-        click.option("--prob-hit", default=0.7, show_default=True, type=float),
-        click.option("--prob-miss", default=0.4, show_default=True, type=float),
-        click.option("--clamp-min", default=0.1192, show_default=True, type=float),
-        click.option("--clamp-max", default=0.971, show_default=True, type=float),
+        click.option("--prob-hit", default=0.7, show_default=True, type=float, help="Occupancy probability of a hit (OctoMap)."),
+        click.option("--prob-miss", default=0.4, show_default=True, type=float, help="Occupancy probability of a pass-through."),
+        click.option("--clamp-min", default=0.1192, show_default=True, type=float, help="Lower probability clamp."),
+        click.option("--clamp-max", default=0.971, show_default=True, type=float, help="Upper probability clamp."),
         click.option("--threshold", default=0.5, show_default=True, type=float, help="Occupancy probability threshold."),
     ]
     for option in reversed(options):
@@ -134,11 +137,12 @@ def resolve_source(source, sample):
 @click.argument("source", required=False, type=click.Path(path_type=Path))
 @click.option("--sample", is_flag=True, help="Use the small real sample shipped with voxtool (norlab, BSD-3) as SOURCE.")
 @click.option("-o", "--output", type=click.Path(path_type=Path), help="Write the map snapshot (.vxm) here (atomically).")
-@click.option("--backend", default="octree", show_default=True, help="Map backend: octree, octocache, tiny (docs/backends.md).")
+@click.option("--backend", type=click.Choice(BACKEND_NAMES), default="octree", show_default=True,
+              help="Map backend (docs/backends.md).")
 @scan_options
 @click.option("--param", "backend_params", multiple=True, metavar="KEY=VALUE",
               help="Backend option, e.g. tau=4, buckets=65536, threads=2, order=morton (octocache); "
-                   "pool_blocks=4096, map_size=40 (tiny).")
+                   "pool_blocks=4096, map_size=40 (tiny); n_lim=50000, d_inf=0.2, d_in=30, ttl=5, p_init=0.5 (hashmap).")
 @click.option("--pool-blocks", type=int, help="tiny: memory budget in blocks of 8 nodes (<= 4096: 16-bit nodes).")
 @click.option("--map-size", type=float, help="tiny: edge of the cubic map extent in metres (sets the depth).")
 @click.option("--schedule", multiple=True, metavar="SCAN:KEY=VALUE",
@@ -261,7 +265,8 @@ def cache_bench_cmd(source, sample, tau, buckets, order, threads, as_json, **kw)
 @click.option("--sample", is_flag=True, help="Use the shipped sample as SOURCE.")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Packet log to write (.mcap).")
 @click.option("--robot", default="r1", show_default=True, help="Robot id (1..16 bytes) stamped on every packet.")
-@click.option("--backend", default="octree", show_default=True, help="Map backend that produces the changes.")
+@click.option("--backend", type=click.Choice(BACKEND_NAMES), default="octree", show_default=True,
+              help="Map backend that produces the changes.")
 @scan_options
 @click.option("--scheme", type=click.Choice(["hilbert", "nested", "racer", "occupied"]), default="hilbert", show_default=True)
 @click.option("--codec", type=click.Choice(["zstd", "zlib", "none"]), default="zstd", show_default=True)
