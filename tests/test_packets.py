@@ -209,3 +209,17 @@ def test_resend_falls_back_to_a_keyframe_after_a_long_outage(tmp_path):
     blobs = {"k": [b for _, _, b in read_log(out)[1]]}
     sim = simulate([], seed=5, channel=ChannelModel(loss=0.9, keyframe_gap=3), blobs=blobs)
     assert sim["keyframes"] >= 1 and sim["complete"] and sim["equal_to_lossless"]
+
+
+def test_periodic_keyframes_keep_the_replay_exact(tmp_path):
+    src = scene_dir(tmp_path)
+    backend = make_backend("octree", MapParams(0.1), SensorModel())
+    out = tmp_path / "kf.mcap"
+    report = encode_stream(open_source(src, SourceOptions()), backend, out,
+                           EncodeOptions(max_changes=300, max_interval=0.25, keyframe_every=3), {}, progress=False)
+    assert report["keyframes"] >= 1
+    kinds = [p.kind for p in packets_of(out)]
+    assert kinds.count(KIND_KEYFRAME) == report["keyframes"]
+    fused = fuse([out])
+    codes, states = map_states(backend)
+    assert np.array_equal(fused.codes, codes) and np.array_equal(fused.states, states)

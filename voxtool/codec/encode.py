@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from voxtool.codec.log import PacketLogWriter
-from voxtool.codec.packet import FREE, KIND_KEYFRAME, OCCUPIED, UNKNOWN, encode_packet
+from voxtool.codec.packet import FREE, OCCUPIED, UNKNOWN, encode_packet, keyframe_packet
 from voxtool.errors import ParameterError
 from voxtool.keys import morton_decode
 from voxtool.maps.base import MapBackend
@@ -221,12 +221,6 @@ def keyframe_blob(backend: MapBackend, opts: EncodeOptions, seq: int, stamp: int
 
     lv = backend.leaves()
     codes = expand_leaves(lv.codes, lv.depths)
-    keys = morton_decode(codes).astype(np.int64)
     values = np.repeat(lv.values, np.left_shift(1, 3 * (16 - lv.depths.astype(np.int64))))
-    lo = keys.min(axis=0) if keys.shape[0] else np.zeros(3, np.int64)
-    dims = (keys.max(axis=0) - lo + 1) if keys.shape[0] else np.ones(3, np.int64)
-    grid = np.full(int(np.prod(dims)), UNKNOWN, dtype=np.uint8)
-    rel = keys - lo
-    grid[rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])] = voxel_states(values, backend.sensor.threshold_log)
-    return encode_packet(opts.robot, seq, stamp, opts.scheme, opts.codec, backend.params.resolution, keys[:0],
-                         grid, kind=KIND_KEYFRAME, box=(lo, dims))
+    return keyframe_packet(opts.robot, seq, stamp, opts.scheme, opts.codec, backend.params.resolution, codes,
+                           voxel_states(values, backend.sensor.threshold_log))

@@ -171,6 +171,22 @@ def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, 
     return head[:-4] + struct.pack("<I", crc) + stored
 
 
+def keyframe_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, resolution: float,
+                    codes: np.ndarray, states: np.ndarray) -> bytes:
+    """Full-state keyframe of known voxels (Morton codes, FREE/OCCUPIED states): every cell of
+    their bounding box, unknown where no voxel is given, no 'unchanged'."""
+    from voxtool.keys import morton_decode
+
+    keys = morton_decode(codes).astype(np.int64)
+    lo = keys.min(axis=0) if keys.shape[0] else np.zeros(3, np.int64)
+    dims = (keys.max(axis=0) - lo + 1) if keys.shape[0] else np.ones(3, np.int64)
+    grid = np.full(int(np.prod(dims)), UNKNOWN, dtype=np.uint8)
+    rel = keys - lo
+    grid[rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])] = states
+    return encode_packet(robot, seq, stamp_ns, scheme, codec, resolution, keys[:0], grid, kind=KIND_KEYFRAME,
+                         box=(lo, dims))
+
+
 def decode_packet(blob: bytes, where: str = "packet") -> Packet:
     """Parse and decode one packet, checking magic, version, CRC and every size before use."""
     if len(blob) < HEADER.size:

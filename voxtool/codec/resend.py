@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from voxtool.codec.fusion import Extrinsic, fuse
-from voxtool.codec.packet import KIND_KEYFRAME, UNKNOWN, decode_packet, encode_packet
+from voxtool.codec.packet import decode_packet, keyframe_packet
 
 
 @dataclass
@@ -53,17 +53,8 @@ def missing_from(runs: list[tuple[int, int]], upto: int) -> list[int]:
 def _keyframe(robot: str, packets: list, upto: int) -> bytes:
     """Full-state keyframe of a robot's own map after its packets 0..upto."""
     own = fuse([], packets=iter(packets[: upto + 1]))
-    p0 = packets[upto]
-    from voxtool.keys import morton_decode
-
-    keys = morton_decode(own.codes).astype(np.int64)
-    lo = keys.min(axis=0) if keys.shape[0] else np.zeros(3, np.int64)
-    dims = (keys.max(axis=0) - lo + 1) if keys.shape[0] else np.ones(3, np.int64)
-    grid = np.full(int(np.prod(dims)), UNKNOWN, dtype=np.uint8)
-    rel = keys - lo
-    grid[rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])] = own.states
-    return encode_packet(robot, upto, p0.stamp_ns, "hilbert", "zstd", p0.resolution, keys[:0], grid,
-                         kind=KIND_KEYFRAME, box=(lo, dims))
+    last = packets[upto]
+    return keyframe_packet(robot, upto, last.stamp_ns, "hilbert", "zstd", last.resolution, own.codes, own.states)
 
 
 def simulate(paths: list[Path], loss: float = 0.3, seed: int = 0, extrinsics: dict[str, Extrinsic] | None = None,
