@@ -35,8 +35,13 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     from voxtool.maps import make_backend
     from voxtool.pipeline import build
 
+    from voxtool.atomic import check_writable
+
     if output is not None and Path(output).suffix.lower() != ".vxm":
         raise ParameterError(f"{output}: map snapshots are written as .vxm (use `voxtool export` for .bt/.ply/.pcd/.png)")
+    for path in (output, share):
+        if path is not None:
+            check_writable(path)
     stream = open_source(source, options)
     backend = make_backend(backend_name, params, sensor, **(backend_options or {}))
     writer = None

@@ -21,6 +21,15 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
+def check_writable(target: str | os.PathLike) -> None:
+    """Fail before a long run, not after it, when the output cannot be created."""
+    directory = Path(target).parent if str(Path(target).parent) else Path(".")
+    if not directory.is_dir():
+        raise VoxtoolError(f"{target}: output directory {directory} does not exist")
+    if not os.access(directory, os.W_OK):
+        raise VoxtoolError(f"{target}: output directory {directory} is not writable")
+
+
 @contextlib.contextmanager
 def atomic_writer(target: str | os.PathLike) -> Iterator[BinaryIO]:
     """Yield a binary file; on clean exit it replaces `target` atomically, else it is removed."""

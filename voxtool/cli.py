@@ -288,6 +288,9 @@ def encode(source, sample, output, robot, backend, scheme, codec, max_changes, m
 
     if output.suffix.lower() != ".mcap":
         raise ParameterError(f"{output}: packet logs are written as .mcap")
+    from voxtool.atomic import check_writable
+
+    check_writable(output)
     options, params, sensor = scan_setup(kw)
     src = resolve_source(source, sample)
     opts = EncodeOptions(robot, scheme, codec, max_changes, max_interval, ring, keyframe_every, rate_hz)

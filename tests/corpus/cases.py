@@ -332,3 +332,15 @@ CASES += [
     ("mcap chunk corrupted", mcap_case(mutate=flip_in_first_chunk), 3, "corrupt MCAP while reading poses"),
     ("mcap channel without schema", mcap_without_schema, 3, "found 0 PointCloud2 topics (none); choose one with --topic"),
 ]
+
+
+def missing_output_dir(tmp):
+    d = tmp / "scans"
+    d.mkdir()
+    write_pcd(d / "0.pcd", PTS)
+    return ["build", d, "-o", tmp / "no" / "such" / "dir" / "out.vxm"]
+
+
+CASES += [
+    ("output directory missing", missing_output_dir, 1, "output directory"),
+]
