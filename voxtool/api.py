@@ -31,11 +31,10 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     """Build a map from a source; write a snapshot if `output` is given. Returns stats + timings.
     `share` (hashmap backend): write each scan's newly occupied voxels, ring of `share_ring`
     frames, as a packet log."""
+    from voxtool.atomic import check_writable
     from voxtool.io.mapfile import save_map
     from voxtool.maps import make_backend
     from voxtool.pipeline import build
-
-    from voxtool.atomic import check_writable
 
     if output is not None and Path(output).suffix.lower() != ".vxm":
         raise ParameterError(f"{output}: map snapshots are written as .vxm (use `voxtool export` for .bt/.ply/.pcd/.png)")
