@@ -44,6 +44,8 @@ class PreparedScan:
     seconds: float
     rays: int = 0
     merged_rays: int = 0  # rays skipped because another ray of the scan has the same voxel path
+    stamp_ns: int = 0  # scan time (backends that keep time, e.g. the hash map's history)
+    origin: np.ndarray | None = None  # sensor origin (the hash map's inflation range)
 
 
 class MapBackend(Protocol):

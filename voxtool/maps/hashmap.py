@@ -41,6 +41,7 @@ class HashVoxelMap:
         self.params, self.sensor = params, sensor
         self.p_free = p_free
         self.values: dict[str, float] = {}
+        self.offsets, self.offset_start = sphere_offsets(0)
         self.set_params(p_init=p_init, n_lim=n_lim, d_in=d_in, d_inf=d_inf, inf_range=inf_range, ttl=ttl)
         self.schedule = sorted((int(i), str(k), float(v)) for i, k, v in (schedule or []))
         for _, k, _ in self.schedule:
@@ -54,7 +55,6 @@ class HashVoxelMap:
         self.tab_val = np.zeros(4096, dtype=np.int64)
         self.meta = np.array([-1, -1, 0, 0, 0, 0, 0], dtype=np.int64)
         self.presence = np.zeros(K.PRESENCE_BITS // 64, dtype=np.int64)
-        self.offsets, self.offset_start = sphere_offsets(self.radius_vox)
         self.scan_metrics: list[dict] = []
         self.newly_occupied: np.ndarray = np.zeros(0, np.int64)
 
@@ -71,7 +71,7 @@ class HashVoxelMap:
         if v["d_inf"] < 0 or v["d_inf"] / self.params.resolution > 64:
             raise ParameterError(f"d_inf={v['d_inf']} must lie in [0, 64 voxels]")
         self.radius_vox = int(math.floor(v["d_inf"] / self.params.resolution + 1e-9))
-        if hasattr(self, "offset_start") and self.radius_vox + 1 >= self.offset_start.shape[0]:
+        if self.radius_vox + 1 >= self.offset_start.shape[0]:
             self.offsets, self.offset_start = sphere_offsets(self.radius_vox)
 
     def _schedule_for(self, index: int) -> None:
@@ -127,8 +127,8 @@ class HashVoxelMap:
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         v, s = self.values, self.sensor
         packed = prepared.packed
-        stamp = getattr(prepared, "stamp_ns", 0)
-        origin = getattr(prepared, "origin", np.zeros(3, np.float32)).astype(np.float64)
+        stamp = prepared.stamp_ns
+        origin = (prepared.origin if prepared.origin is not None else np.zeros(3, np.float32)).astype(np.float64)
         t0 = time.perf_counter()
         n_hits = int((packed & 1).sum())
         self._reserve(n_hits)
@@ -169,9 +169,7 @@ class HashVoxelMap:
 
         self._schedule_for(index)
         codes = np.unique(morton_encode(np.asarray(keys, dtype=np.int64).reshape(-1, 3)))
-        p = PreparedScan((codes << 1) | 1, 0, 0.0)
-        p.stamp_ns, p.origin = stamp_ns, np.zeros(3, np.float32)
-        self.apply(p)
+        self.apply(PreparedScan((codes << 1) | 1, 0, 0.0, stamp_ns=stamp_ns, origin=np.zeros(3, np.float32)))
 
     # -- views ---------------------------------------------------------------------------------
     def _live(self) -> np.ndarray:
