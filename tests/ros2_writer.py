@@ -35,6 +35,15 @@ ODOMETRY = (
 )
 
 
+POSESTAMPED = (
+    "std_msgs/Header header\ngeometry_msgs/Pose pose\n" + SEP + "MSG: std_msgs/Header\n" + HEADER
+    + SEP + "MSG: builtin_interfaces/Time\n" + TIME
+    + SEP + "MSG: geometry_msgs/Pose\nPoint position\nQuaternion orientation\n"
+    + SEP + "MSG: geometry_msgs/Point\nfloat64 x\nfloat64 y\nfloat64 z\n"
+    + SEP + "MSG: geometry_msgs/Quaternion\nfloat64 x\nfloat64 y\nfloat64 z\nfloat64 w\n"
+)
+
+
 def stamp(ns: int) -> dict:
     return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
 
@@ -72,7 +81,7 @@ def odom_msg(ns: int, t, q_wxyz) -> dict:
 def write_mcap(path, scans, mode: str = "tf", cloud_overrides: dict | None = None, skip_tf: bool = False,
                stamps_descending: bool = False) -> None:
     """scans: [(sensor points, origin, q_wxyz)]. mode 'tf': map->odom (identity) ->lidar chain;
-    'odom': an Odometry topic /odom gives the lidar pose."""
+    'odom': an Odometry topic /odom gives the lidar pose; 'pose': a PoseStamped topic /pose."""
     from mcap_ros2.writer import Writer
 
     with open(path, "wb") as f:
@@ -80,6 +89,7 @@ def write_mcap(path, scans, mode: str = "tf", cloud_overrides: dict | None = Non
         s_cloud = w.register_msgdef("sensor_msgs/msg/PointCloud2", POINTCLOUD2)
         s_tf = w.register_msgdef("tf2_msgs/msg/TFMessage", TFMESSAGE)
         s_odom = w.register_msgdef("nav_msgs/msg/Odometry", ODOMETRY)
+        s_pose = w.register_msgdef("geometry_msgs/msg/PoseStamped", POSESTAMPED)
         for i, (pts, origin, q) in enumerate(scans):
             ns = 1_000_000_000 + i * 100_000_000
             # header stamps going backwards while log times go forwards: a broken /tf
@@ -89,6 +99,9 @@ def write_mcap(path, scans, mode: str = "tf", cloud_overrides: dict | None = Non
                 w.write_message("/tf", s_tf, tf_msg("odom", "lidar", tf_ns, origin, q), ns, ns)
             elif mode == "odom":
                 w.write_message("/odom", s_odom, odom_msg(ns, origin, q), ns, ns)
+            elif mode == "pose":
+                m = odom_msg(ns, origin, q)
+                w.write_message("/pose", s_pose, {"header": m["header"], "pose": m["pose"]["pose"]}, ns, ns)
             msg = cloud_msg(pts, ns, "lidar")
             if cloud_overrides and i == 0:
                 msg.update(cloud_overrides)

@@ -93,11 +93,11 @@ def test_kitti_poses_equal_tum_poses(tmp_path, scans):
         assert np.allclose(a.rotation, b.rotation, atol=1e-12) and np.array_equal(a.translation, b.translation)
 
 
-@pytest.mark.parametrize("mode", ["tf", "odom"])
+@pytest.mark.parametrize("mode", ["tf", "odom", "pose"])
 def test_mcap_gives_the_same_map(tmp_path, scans, pcd_map, mode):
     path = tmp_path / "s.mcap"
     write_mcap(path, scans, mode)
-    leaves, report = build_leaves(path, pose_topic="/odom" if mode == "odom" else None)
+    leaves, report = build_leaves(path, pose_topic={"odom": "/odom", "pose": "/pose"}.get(mode))
     assert leaves == pcd_map
     assert report.scans == len(scans) and report.first_stamp_ns == 1_000_000_000
 
@@ -181,3 +181,19 @@ def test_rosbag2_written_mcap_decodes(shared_data):
     assert src.count == 1
     points, pose, stamp, _ = next(src.scans())
     assert points.shape == (34894, 3) and pose.is_identity() and stamp == 0
+
+
+def test_tf_is_interpolated_at_the_cloud_stamp():
+    from voxtool.geometry import Pose, matrix_to_quat
+    from voxtool.sources.mcap_ros2 import STAMP_TOLERANCE_NS, StampedPoses
+
+    series = StampedPoses()
+    series.add(1_000, Pose.from_quat((0, 0, 0), 1, 0, 0, 0))
+    series.add(3_000, Pose.from_quat((2, 0, 0), np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)))  # yaw 90 deg
+    mid = series.at(2_000)
+    assert np.allclose(mid.translation, [1, 0, 0])
+    q = matrix_to_quat(mid.rotation)
+    assert np.isclose(2 * np.arctan2(q[3], q[0]), np.pi / 4)  # slerp: yaw 45 deg
+    assert series.at(3_000 + STAMP_TOLERANCE_NS) is not None
+    assert series.at(3_000 + STAMP_TOLERANCE_NS + 1) is None
+    assert series.at(1_000 - STAMP_TOLERANCE_NS - 1) is None
