@@ -54,8 +54,3 @@ def atomic_writer(target: str | os.PathLike) -> Iterator[BinaryIO]:
             tmp.unlink()
         raise
 
-
-def write_bytes_atomic(target: str | os.PathLike, data: bytes) -> None:
-    """Write `data` to `target` atomically."""
-    with atomic_writer(target) as handle:
-        handle.write(data)

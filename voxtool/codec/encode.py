@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -89,7 +89,6 @@ class EncodeReport:
     packets: int = 0
     keyframes: int = 0
     wire_bytes: int = 0
-    raw_payload_bytes: int = 0
     changed_voxels: int = 0
     raw_sensor_bytes: int = 0
     first_stamp_ns: int = 0
@@ -97,7 +96,6 @@ class EncodeReport:
     time_map_s: float = 0.0
     time_encode_s: float = 0.0
     encoded_cells: int = 0
-    packet_sizes: list[int] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         span = max(self.last_stamp_ns - self.first_stamp_ns, 1) / 1e9
@@ -155,7 +153,6 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
                 log.write(opts.robot, seq, stamp, blob)
                 rep.packets += 1
                 rep.wire_bytes += len(blob)
-                rep.packet_sizes.append(len(blob))
                 seq += 1
             rep.changed_voxels += int(pend_codes.shape[0])
             pend_codes, pend_states = pend_codes[:0], pend_states[:0]

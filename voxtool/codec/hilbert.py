@@ -59,11 +59,6 @@ def _apply(t, c):
     return tuple(c[perm[i]] ^ flips[i] for i in range(3))
 
 
-def _compose(a, b):
-    """a after b, as a signed permutation."""
-    return tuple(_apply(a, _apply(b, c)) for c in _CORNERS)
-
-
 _CORNERS = [((k >> 0) & 1, (k >> 1) & 1, (k >> 2) & 1) for k in range(8)]
 
 

@@ -13,7 +13,6 @@ from numba import njit
 
 from voxtool.kernels.morton import morton3
 
-EMPTY = np.int64(-1)
 _HASH_MULT = np.int64(-7046029254386353131)  # 0x9E3779B97F4A7C15 as int64 (Fibonacci hashing)
 
 
