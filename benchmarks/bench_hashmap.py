@@ -1,7 +1,9 @@
-"""Hash-map backend on quick_shack (Livox Avia, the sensor of the seed's Urban set): a Table-I
-style row per setting, and the relayed map built only from the shared frames.
+"""Hash-map backend on quick_shack (Livox Avia, the sensor of the seed's Urban set) at 0.1 m with
+a 0.2 m inflation radius: a Table-I style row per setting, and the relayed map built only from
+the shared frames. Rows: n_lim 50,000 or unlimited, inflation range (the paper's Table I `d_inf`
+column, `inf_range` here) 8 m as in the paper's rows a-c, or unlimited.
 
-    python benchmarks/bench_hashmap.py [--data ../shared/data]
+    python benchmarks/bench_hashmap.py [--data ../shared/data] [--out bench-results/hashmap.json]
 """
 
 from __future__ import annotations
@@ -13,14 +15,42 @@ from pathlib import Path
 
 import numpy as np
 
+SETUPS = [(50_000, 8.0), (50_000, -1.0), (-1, 8.0), (-1, -1.0)]
 
-def run(src: Path, n_lim: int, share: Path | None) -> dict:
+
+def run(src: Path, n_lim: int, inf_range: float, share: Path) -> dict:
     from voxtool.api import build_map
+    from voxtool.codec.logstats import log_stats
     from voxtool.config import MapParams, SensorModel
     from voxtool.sources import SourceOptions
 
-    return build_map(src, SourceOptions(), MapParams(0.1), SensorModel(), "hashmap", None, False,
-                     {"n_lim": n_lim, "d_inf": 0.2}, share)
+    r = build_map(src, SourceOptions(), MapParams(0.1), SensorModel(), "hashmap", None, False,
+                  {"n_lim": n_lim, "d_inf": 0.2, "inf_range": inf_range}, share)
+    st = log_stats(share)["robots"]["r1"]
+    return {"n_lim": n_lim if n_lim >= 0 else "inf", "inf_range_m": inf_range if inf_range >= 0 else "inf",
+            "d_inf_m": 0.2, "points_per_scan": round(r["points"] / r["scans"]), "n_occ": r["n_occ"],
+            "n_inf_mean": round(r["per_scan_n_inf"]["mean"]), "t_tot_ms": r["per_scan_t_tot_ms"],
+            "t_occ_ms": r["per_scan_t_occ_ms"]["mean"], "t_inf_ms": r["per_scan_t_inf_ms"]["mean"],
+            "t_m_ms": r["per_scan_t_m_ms"]["mean"], "memory_max_mb": round(r["per_scan_memory_bytes"]["max"] / 1e6, 1),
+            "shared_avg_Bps": st["avg_Bps"], "raw_sensor_Bps": st["raw_sensor_Bps"],
+            "bandwidth_reduction": round(1 - st["avg_Bps"] / st["raw_sensor_Bps"], 5)}
+
+
+def relayed(src: Path, share: Path) -> dict:
+    """A receiver's hash map from the shared frames only, against the sender's map."""
+    from voxtool.codec.share import relay
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.maps.hashmap import HashVoxelMap
+    from voxtool.pipeline import build
+    from voxtool.sources import SourceOptions, open_source
+
+    sender = HashVoxelMap(MapParams(0.1), SensorModel(), d_inf=0.2)
+    build(open_source(src, SourceOptions()), sender, progress=False)
+    receiver = HashVoxelMap(MapParams(0.1), SensorModel(), d_inf=0.2)
+    relay(share, receiver)
+    a, b = sender.occupied_codes(), receiver.occupied_codes()
+    return {"sender_occupied": int(a.size), "relayed_occupied": int(b.size),
+            "relayed_holds": round(np.intersect1d(a, b).size / max(a.size, 1), 6)}
 
 
 def main() -> None:
@@ -30,38 +60,23 @@ def main() -> None:
     args = ap.parse_args()
     src = Path(args.data) / "quick_shack" / "quick_shack.mcap"
     rows = []
+    print(f"{'n_lim':>7} {'inf_range':>9} {'n_occ':>7} {'n_inf':>7} {'t_tot med':>9} {'p95':>6} {'mean':>6} "
+          f"{'t_occ':>6} {'t_inf':>6} {'t_m':>6} {'mem MB':>6} {'shared B/s':>10} {'reduction':>9}")
     with tempfile.TemporaryDirectory() as tmp:
-        for n_lim in (50_000, -1):
-            share = Path(tmp) / f"share_{n_lim}.mcap"
-            r = run(src, n_lim, share)
-            row = {"setup": f"n_lim={n_lim if n_lim >= 0 else 'inf'}", "d_inf": 0.2, "n_occ": r["n_occ"],
-                   "n_inf_mean": r["per_scan_n_inf"]["mean"], "t_tot_ms": r["per_scan_t_tot_ms"],
-                   "t_occ_ms": r["per_scan_t_occ_ms"]["mean"], "t_inf_ms": r["per_scan_t_inf_ms"]["mean"],
-                   "t_m_ms": r["per_scan_t_m_ms"]["mean"], "memory_max_mb": round(r["per_scan_memory_bytes"]["max"] / 1e6, 1),
-                   "scan_latency_ms": r["scan_latency_ms"], "points_per_scan": round(r["points"] / r["scans"])}
-            from voxtool.codec.logstats import log_stats
-            from voxtool.codec.share import relay
-            from voxtool.config import MapParams, SensorModel
-            from voxtool.maps.hashmap import HashVoxelMap
-
-            st = log_stats(share)["robots"]["r1"]
-            row.update(shared_avg_Bps=st["avg_Bps"], raw_sensor_Bps=st["raw_sensor_Bps"],
-                       bandwidth_reduction=round(1 - st["avg_Bps"] / st["raw_sensor_Bps"], 5))
-            if n_lim < 0:
-                # relayed map: a second hash map built only from the shared frames
-                from voxtool.maps import make_backend
-                from voxtool.pipeline import build
-                from voxtool.sources import SourceOptions, open_source
-
-                sender = make_backend("hashmap", MapParams(0.1), SensorModel(), n_lim=-1, d_inf=0.2)
-                build(open_source(src, SourceOptions()), sender, progress=False)
-                receiver = HashVoxelMap(MapParams(0.1), SensorModel(), d_inf=0.2)
-                relay(share, receiver)
-                a, b = sender.occupied_codes(), receiver.occupied_codes()
-                row.update(sender_occupied=int(a.size), relayed_occupied=int(b.size),
-                           relayed_holds=round(np.intersect1d(a, b).size / max(a.size, 1), 6))
+        for n_lim, inf_range in SETUPS:
+            share = Path(tmp) / f"share_{n_lim}_{inf_range}.mcap"
+            row = run(src, n_lim, inf_range, share)
+            if n_lim < 0 and inf_range < 0:
+                row.update(relayed(src, share))
             rows.append(row)
-            print(json.dumps(row))
+            t = row["t_tot_ms"]
+            print(f"{row['n_lim']:>7} {row['inf_range_m']:>9} {row['n_occ']:>7} {row['n_inf_mean']:>7} "
+                  f"{t['median']:>9.2f} {t['p95']:>6.2f} {t['mean']:>6.2f} {row['t_occ_ms']:>6.2f} "
+                  f"{row['t_inf_ms']:>6.2f} {row['t_m_ms']:>6.2f} {row['memory_max_mb']:>6} "
+                  f"{row['shared_avg_Bps']:>10.0f} {row['bandwidth_reduction']:>9.2%}")
+    if "relayed_holds" in rows[-1]:
+        r = rows[-1]
+        print(f"relayed map holds {r['relayed_holds']:.2%} of the sender's {r['sender_occupied']} occupied voxels")
     Path(args.out).parent.mkdir(exist_ok=True)
     Path(args.out).write_text(json.dumps(rows, indent=2))
 

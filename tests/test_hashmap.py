@@ -174,8 +174,8 @@ def test_ttl_forgets_voxels_not_seen_recently():
         keep_all.integrate(scan)
         now = i * 100_000_000
         live = m._live()
-        occ = live[(m.records[3][live] == 1) & (m.records[2][live] == 1)]
-        assert np.all(m.records[10][occ] >= now - int(ttl * 1e9))  # records[10]: last update stamp
+        occ = live[(live["in_occ"] == 1) & (live["state"] == 1)]
+        assert np.all(occ["last"] >= now - int(ttl * 1e9))
     assert 0 < len(m.occupied_codes()) < len(keep_all.occupied_codes())
 
 
@@ -208,3 +208,25 @@ def test_snapshot_round_trip(tmp_path):
         m.integrate(scan)
     a, b = m.leaves(), back.leaves()
     assert np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)
+
+
+@pytest.mark.parametrize("max_range", [-1.0, 2.5])
+def test_filtered_ray_casting_keeps_exactly_the_updates_that_matter(max_range):
+    """The hash map casts rays against its own brick table; what it keeps must equal OctoMap's
+    full update set (scan_updates) cut down to the hits and the misses on occupancy-map voxels,
+    with scans big enough to take the two-thread path and a max range that cuts rays."""
+    from voxtool.maps.octree import SMALL_SCAN, scan_updates
+
+    params = MapParams(0.1, max_range=max_range)
+    m = HashVoxelMap(params, S, n_lim=3000, d_inf=0.2)
+    kept_misses = 0
+    for i, scan in enumerate(world_scans(6, SMALL_SCAN + 500, seed=40)):
+        scan.index = i
+        full, _, _ = scan_updates(scan, params)
+        in_map = m.leaves().codes
+        keep = (full & 1 == 1) | np.isin(full >> 1, in_map)
+        got, _ = m._trace(m.prepare(scan).scan)
+        np.testing.assert_array_equal(got, full[keep])
+        kept_misses += int((got & 1 == 0).sum())
+        m.integrate(scan)
+    assert len(m.leaves()) > 1000 and kept_misses > 100  # later scans met a populated map

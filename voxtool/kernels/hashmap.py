@@ -1,8 +1,10 @@
 """Kernels of the `hashmap` backend (seed: voxel-mapping-hash-map-sharing.md, Alg. 1-3).
 
-Voxel records live in flat arrays indexed by record number (the paper's pointers); an
-open-addressing table maps Morton code -> record. The history buffer is a doubly linked list
-through rec_prev / rec_next. States: 0 free, 1 occupied, 2 unknown.
+A voxel is one 64-byte record (the paper's voxel object; its "pointers" are record numbers),
+so everything an update reads or writes about a voxel lies in one cache line. An
+open-addressing table of (Morton code, record) pairs, also one line per probe, finds records.
+The history buffer is a doubly linked list through the records' prev / next fields.
+States: 0 free, 1 occupied, 2 unknown; state -1 marks an unused record.
 """
 
 from __future__ import annotations
@@ -11,13 +13,36 @@ import numpy as np
 from numba import njit
 
 from voxtool.kernels.morton import compact16, morton3
+from voxtool.kernels.raycast import _coord_key
 
+RECORD = np.dtype({
+    "names": ["code", "last", "prev", "next", "l", "inf", "radius", "hits", "misses", "state", "in_occ"],
+    "formats": ["<i8", "<i8", "<i8", "<i8", "<f4", "<i4", "<i4", "<i4", "<i4", "i1", "u1"],
+    "offsets": [0, 8, 16, 24, 32, 36, 40, 44, 48, 52, 53],
+    "itemsize": 64,
+})
 EMPTY = -1
 TOMB = -2
 NOT_IN_HISTORY = -2
-# meta fields
-M_HEAD, M_TAIL, M_HSIZE, M_FREE_TOP, M_LIVE, M_TOMBS, M_NEXT = 0, 1, 2, 3, 4, 5, 6
+# meta fields: history head / tail / size, free-list top, live records, tombstones, next unused
+# record, records with inflation count > 0, scratch, bricks and brick tombstones of the brick table
+M_HEAD, M_TAIL, M_HSIZE, M_FREE_TOP, M_LIVE, M_TOMBS, M_NEXT, M_NINF, M_WARM, M_BRICKS, M_BTOMBS = range(11)
+META_FIELDS = 11
 _MULT = np.int64(-7046029254386353131)
+
+
+def new_records(n: int) -> np.ndarray:
+    """n unused records, the array aligned to 64 bytes so that each record is one cache line."""
+    raw = np.zeros(n * RECORD.itemsize + 64, dtype=np.uint8)
+    skip = (-raw.ctypes.data) % 64
+    rec = raw[skip: skip + n * RECORD.itemsize].view(RECORD)
+    rec["state"] = -1
+    return rec
+
+
+def new_table(size: int) -> np.ndarray:
+    """An empty hash table of `size` (a power of two) slots: (code, record) per slot."""
+    return np.full((size, 2), EMPTY, dtype=np.int64)
 
 
 @njit(cache=True, inline="always")
@@ -26,213 +51,447 @@ def _slot(code, mask):
 
 
 @njit(cache=True)
-def find(tab_key, tab_val, code):
-    mask = tab_key.shape[0] - 1
+def find(tab, code):
+    mask = tab.shape[0] - 1
     s = _slot(code, mask)
     while True:
-        k = tab_key[s]
+        k = tab[s, 0]
         if k == EMPTY:
             return -1
         if k == code:
-            return tab_val[s]
+            return tab[s, 1]
         s = (s + 1) & mask
 
 
 @njit(cache=True)
-def _insert(tab_key, tab_val, code, rec, meta):
-    mask = tab_key.shape[0] - 1
+def _insert(tab, code, rec, meta):
+    mask = tab.shape[0] - 1
     s = _slot(code, mask)
-    while tab_key[s] != EMPTY and tab_key[s] != TOMB:
+    while tab[s, 0] != EMPTY and tab[s, 0] != TOMB:
         s = (s + 1) & mask
-    if tab_key[s] == TOMB:
+    if tab[s, 0] == TOMB:
         meta[M_TOMBS] -= 1
-    tab_key[s] = code
-    tab_val[s] = rec
+    tab[s, 0] = code
+    tab[s, 1] = rec
 
 
 @njit(cache=True)
-def _erase(tab_key, code, meta):
-    mask = tab_key.shape[0] - 1
+def _erase(tab, code, meta):
+    mask = tab.shape[0] - 1
     s = _slot(code, mask)
-    while tab_key[s] != code:
+    while tab[s, 0] != code:
         s = (s + 1) & mask
-    tab_key[s] = TOMB
+    tab[s, 0] = TOMB
     meta[M_TOMBS] += 1
 
 
 @njit(cache=True)
-def _new_record(code, R, free, meta, tab_key, tab_val):
-    rec_code, rec_l, rec_state, rec_in_occ, rec_inf, rec_radius, rec_prev, rec_next, rec_hits, rec_misses, rec_last = R
+def _new_record(code, R, free, meta, tab):
     if meta[M_FREE_TOP] > 0:
         meta[M_FREE_TOP] -= 1
         r = free[meta[M_FREE_TOP]]
     else:
         r = meta[M_NEXT]
         meta[M_NEXT] += 1
-    rec_code[r] = code
-    rec_l[r] = 0.0
-    rec_state[r] = 2
-    rec_in_occ[r] = 0
-    rec_inf[r] = 0
-    rec_radius[r] = -1
-    rec_prev[r] = NOT_IN_HISTORY
-    rec_next[r] = NOT_IN_HISTORY
-    rec_hits[r] = 0
-    rec_misses[r] = 0
-    rec_last[r] = 0
+    v = R[r]
+    v.code = code
+    v.last = 0
+    v.prev = NOT_IN_HISTORY
+    v.next = NOT_IN_HISTORY
+    v.l = 0.0
+    v.inf = 0
+    v.radius = -1
+    v.hits = 0
+    v.misses = 0
+    v.state = 2
+    v.in_occ = 0
     meta[M_LIVE] += 1
-    _insert(tab_key, tab_val, code, r, meta)
+    _insert(tab, code, r, meta)
     return r
 
 
 @njit(cache=True)
-def _drop_record(r, R, free, meta, tab_key):
-    R[2][r] = -1  # state: slot unused
-    _erase(tab_key, R[0][r], meta)
+def _drop_record(r, R, free, meta, tab):
+    R[r].state = -1
+    _erase(tab, R[r].code, meta)
     free[meta[M_FREE_TOP]] = r
     meta[M_FREE_TOP] += 1
     meta[M_LIVE] -= 1
 
 
-PRESENCE_BITS = 1 << 24  # 2 MiB bitmap: "a record may exist for this code" (no false negatives)
+# The occupancy map's voxels as bricks of 8x8x8: an open-addressing table of brick ids with a
+# 512-bit mask each (which of the brick's voxels the occupancy map holds), kept exact as voxels
+# enter and leave. Rays consult it once per brick crossed and test a bit per step inside an
+# occupied brick, so misses that fall in empty space cost no voxel look-up.
+
+
+def new_bricks(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """An empty brick table of `size` (a power of two) slots: ids and 512-bit masks."""
+    return np.full(size, EMPTY, dtype=np.int64), np.zeros((size, 8), dtype=np.int64)
 
 
 @njit(cache=True, inline="always")
-def _presence_bit(code):
-    return ((code * _MULT) >> 32) & (PRESENCE_BITS - 1)
+def _brick_id(kx, ky, kz):
+    return ((kx >> 3) << 26) | ((ky >> 3) << 13) | (kz >> 3)
+
+
+@njit(cache=True, inline="always")
+def _in_brick(kx, ky, kz):
+    return (kx & 7) | ((ky & 7) << 3) | ((kz & 7) << 6)
+
+
+@njit(cache=True, inline="always")
+def brick_find(bkeys, b):
+    """Slot of brick id b, or -1."""
+    mask = bkeys.shape[0] - 1
+    s = ((b * _MULT) >> 24) & mask
+    while True:
+        k = bkeys[s]
+        if k == b:
+            return s
+        if k == EMPTY:
+            return -1
+        s = (s + 1) & mask
 
 
 @njit(cache=True)
-def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_free, R, free, meta, tab_key, tab_val,
-                 presence, out_touched, out_new, out_changed):
-    """Alg. 1 + occupancy check. Hits create voxels (prior l_init); misses update only voxels the
-    occupancy map holds (known-free space is never stored): most misses fall in empty space, so a
-    presence bitmap (set when a voxel enters the occupancy map, never cleared) skips their look-up.
+def _mark_present(code, bkeys, bmask, meta):
+    """The occupancy map now holds voxel `code`."""
+    kx, ky, kz = compact16(code), compact16(code >> 1), compact16(code >> 2)
+    b = _brick_id(kx, ky, kz)
+    s = brick_find(bkeys, b)
+    if s < 0:
+        mask = bkeys.shape[0] - 1
+        s = ((b * _MULT) >> 24) & mask
+        while bkeys[s] != EMPTY and bkeys[s] != TOMB:
+            s = (s + 1) & mask
+        if bkeys[s] == TOMB:
+            meta[M_BTOMBS] -= 1
+        bkeys[s] = b
+        bmask[s, :] = 0
+        meta[M_BRICKS] += 1
+    v = _in_brick(kx, ky, kz)
+    bmask[s, v >> 6] |= np.int64(1) << (v & 63)
+
+
+@njit(cache=True)
+def _clear_present(code, bkeys, bmask, meta):
+    """Voxel `code` left the occupancy map; a brick left empty leaves the table."""
+    kx, ky, kz = compact16(code), compact16(code >> 1), compact16(code >> 2)
+    s = brick_find(bkeys, _brick_id(kx, ky, kz))
+    v = _in_brick(kx, ky, kz)
+    bmask[s, v >> 6] &= ~(np.int64(1) << (v & 63))
+    for w in range(8):
+        if bmask[s, w] != 0:
+            return
+    bkeys[s] = TOMB
+    meta[M_BRICKS] -= 1
+    meta[M_BTOMBS] += 1
+
+
+@njit(cache=True)
+def brick_rehash(old_keys, old_mask, bkeys, bmask):
+    """Move the live bricks of one table into an empty, larger one (drops tombstones)."""
+    mask = bkeys.shape[0] - 1
+    for i in range(old_keys.shape[0]):
+        b = old_keys[i]
+        if b >= 0:
+            s = ((b * _MULT) >> 24) & mask
+            while bkeys[s] != EMPTY:
+                s = (s + 1) & mask
+            bkeys[s] = b
+            bmask[s, :] = old_mask[i, :]
+
+
+@njit(cache=True, inline="always")
+def _set_add(seen, slots, n, update):
+    """Add `update` (code << 1 | hit) to the open-addressing set `seen` (a hit wins over a
+    miss); `slots` lists the used slots in insertion order. Returns the new count."""
+    mask = seen.shape[0] - 1
+    code = update >> 1
+    s = ((code * _MULT) >> 24) & mask
+    while True:
+        v = seen[s]
+        if v == EMPTY:
+            seen[s] = update
+            slots[n] = s
+            return n + 1
+        if v >> 1 == code:
+            seen[s] = v | (update & 1)
+            return n
+        s = (s + 1) & mask
+
+
+@njit(cache=True, nogil=True)
+def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slots, out):
+    """One scan's rays with OctoMap's DDA and max-range rule (the same keys as
+    kernels.raycast.scan_bricks), keeping what the hash map can use: the endpoint voxels (hits),
+    and the voxels rays pass through that the occupancy map holds (misses; a miss elsewhere
+    changes nothing: known-free space is not stored). A ray crossing an 8x8x8 brick that holds
+    no map voxel only steps the DDA.
+
+    Each voxel once, a hit winning over a miss, in `out` as code << 1 | hit (unsorted); `seen`
+    (all EMPTY, left so) is the de-duplicating set, `slots` its scratch. Returns (n, steps);
+    n = -1 when the set would pass half full (the caller grows it and calls again)."""
+    res_factor = 1.0 / resolution
+    ox, oy, oz = origin[0], origin[1], origin[2]
+    okx = _coord_key(ox, res_factor)
+    oky = _coord_key(oy, res_factor)
+    okz = _coord_key(oz, res_factor)
+    o64x, o64y, o64z = np.float64(ox), np.float64(oy), np.float64(oz)
+    half = np.float64(np.float32(resolution * 0.5))
+    mr32 = np.float32(max_range)
+    limit = seen.shape[0] // 2
+    n = 0
+    steps = 0
+    big = 1.7976931348623157e308
+    for i in range(points.shape[0]):
+        if n >= limit:
+            break
+        ex, ey, ez = points[i, 0], points[i, 1], points[i, 2]
+        dx, dy, dz = ex - ox, ey - oy, ez - oz
+        cut = False
+        if max_range >= 0.0:
+            norm = np.sqrt(np.float64(dx * dx + dy * dy + dz * dz))
+            if norm > max_range:
+                # OctoMap computeUpdate: the ray ends at max_range and marks no hit
+                cut = True
+                ln = np.float32(norm)
+                ex, ey, ez = ox + (dx / ln) * mr32, oy + (dy / ln) * mr32, oz + (dz / ln) * mr32
+                dx, dy, dz = ex - ox, ey - oy, ez - oz
+        ekx = _coord_key(ex, res_factor)
+        eky = _coord_key(ey, res_factor)
+        ekz = _coord_key(ez, res_factor)
+        if not cut:
+            n = _set_add(seen, slots, n, (morton3(ekx, eky, ekz) << 1) | 1)
+        if ekx == okx and eky == oky and ekz == okz:
+            continue
+        # OctoMap computeRayKeys initialisation (float32 direction, float64 tMax / tDelta)
+        length = np.float32(np.sqrt(np.float64(dx * dx + dy * dy + dz * dz)))
+        fx, fy, fz = dx / length, dy / length, dz / length
+        sx = 1 if fx > 0.0 else (-1 if fx < 0.0 else 0)
+        sy = 1 if fy > 0.0 else (-1 if fy < 0.0 else 0)
+        sz = 1 if fz > 0.0 else (-1 if fz < 0.0 else 0)
+        tx = ty = tz = big
+        ux = uy = uz = big
+        if sx != 0:
+            tx = ((np.float64(okx - 32768) + 0.5) * resolution + sx * half - o64x) / np.float64(fx)
+            ux = resolution / abs(np.float64(fx))
+        if sy != 0:
+            ty = ((np.float64(oky - 32768) + 0.5) * resolution + sy * half - o64y) / np.float64(fy)
+            uy = resolution / abs(np.float64(fy))
+        if sz != 0:
+            tz = ((np.float64(okz - 32768) + 0.5) * resolution + sz * half - o64z) / np.float64(fz)
+            uz = resolution / abs(np.float64(fz))
+        # the key that starts a new brick when stepping along each axis
+        bx = 0 if sx > 0 else 7
+        by = 0 if sy > 0 else 7
+        bz = 0 if sz > 0 else 7
+        length64 = np.float64(length)
+        kx, ky, kz = okx, oky, okz
+        # every step moves one axis one voxel towards the end key, so the ray can reach it only
+        # after exactly this many steps (an axis that overshoots never comes back)
+        to_end = abs(ekx - okx) + abs(eky - oky) + abs(ekz - okz)
+        bs = brick_find(bkeys, _brick_id(kx, ky, kz))
+        while True:
+            if bs >= 0:
+                v = _in_brick(kx, ky, kz)
+                if (bmask[bs, v >> 6] >> (v & 63)) & 1 == 1 and n < limit:
+                    n = _set_add(seen, slots, n, morton3(kx, ky, kz) << 1)
+            steps += 1
+            if tx < ty:
+                if tx < tz:
+                    kx += sx
+                    tx += ux
+                    crossed = (kx & 7) == bx
+                else:
+                    kz += sz
+                    tz += uz
+                    crossed = (kz & 7) == bz
+            else:
+                if ty < tz:
+                    ky += sy
+                    ty += uy
+                    crossed = (ky & 7) == by
+                else:
+                    kz += sz
+                    tz += uz
+                    crossed = (kz & 7) == bz
+            to_end -= 1
+            if to_end == 0 and kx == ekx and ky == eky and kz == ekz:
+                break
+            if min(tx, min(ty, tz)) > length64:
+                break
+            if crossed:
+                bs = brick_find(bkeys, _brick_id(kx, ky, kz))
+    for j in range(n):
+        out[j] = seen[slots[j]]
+        seen[slots[j]] = EMPTY
+    if n >= limit:
+        return -1, steps
+    return n, steps
+
+
+@njit(cache=True)
+def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_free, R, free, meta, tab,
+                 bkeys, bmask, out_touched, out_new, out_changed):
+    """Alg. 1 + occupancy check over Morton-sorted (code << 1 | hit) updates. Hits create voxels
+    (prior l_init); misses update only voxels the occupancy map holds (known-free space is never
+    stored).
     Returns (n touched, n occ-changed)."""
-    rec_code, rec_l, rec_state, rec_in_occ, rec_inf, rec_radius, rec_prev, rec_next, rec_hits, rec_misses, rec_last = R
     nt = 0
     nc = 0
+    # touch the home slots first (independent loads overlap their cache misses, see _inflate_one)
+    mask = tab.shape[0] - 1
+    warm = np.int64(0)
+    for i in range(packed.shape[0]):
+        warm += tab[_slot(packed[i] >> 1, mask), 1]
+    meta[M_WARM] = warm
     for i in range(packed.shape[0]):
         code = packed[i] >> 1
         hit = (packed[i] & 1) == 1
-        bit = _presence_bit(code)
-        if not hit and (presence[bit >> 6] >> (bit & 63)) & 1 == 0:
-            continue
-        r = find(tab_key, tab_val, code)
+        r = find(tab, code)
         is_new = False
         if hit:
             if r < 0:
-                r = _new_record(code, R, free, meta, tab_key, tab_val)
-            if rec_in_occ[r] == 0:
+                r = _new_record(code, R, free, meta, tab)
+            v = R[r]
+            if v.in_occ == 0:
                 # entering the occupancy map (new, or until now only inflated): misses apply from now on
-                presence[bit >> 6] |= np.int64(1) << (bit & 63)
-                rec_in_occ[r] = 1
-                rec_l[r] = l_init
-                rec_state[r] = 2
+                _mark_present(code, bkeys, bmask, meta)
+                v.in_occ = 1
+                v.l = l_init
+                v.state = 2
                 is_new = True
-            v = rec_l[r] + l_hit
-            rec_hits[r] += 1
+            x = v.l + l_hit
+            v.hits += 1
         else:
-            if r < 0 or rec_in_occ[r] == 0:
+            if r < 0 or R[r].in_occ == 0:
                 continue
-            v = rec_l[r] + l_miss
-            rec_misses[r] += 1
-        if v < l_min:
-            v = l_min
-        elif v > l_max:
-            v = l_max
-        rec_l[r] = v
-        was_occ = rec_state[r] == 1 and not is_new
-        rec_state[r] = 1 if v > l_occ else (0 if v < l_free else 2)
-        rec_last[r] = stamp
+            v = R[r]
+            x = v.l + l_miss
+            v.misses += 1
+        if x < l_min:
+            x = l_min
+        elif x > l_max:
+            x = l_max
+        v.l = x
+        was_occ = v.state == 1 and not is_new
+        v.state = 1 if x > l_occ else (0 if x < l_free else 2)
+        v.last = stamp
         out_touched[nt] = r
         out_new[nt] = is_new
         nt += 1
-        if was_occ != (rec_state[r] == 1):
+        if was_occ != (v.state == 1):
             out_changed[nc] = r
             nc += 1
     return nt, nc
 
 
+@njit(cache=True, inline="always")
+def _sphere_code(x, y, z, offsets, j):
+    """Morton code of voxel (x, y, z) + offsets[j], or -1 outside the key range."""
+    nx = x + offsets[j, 0]
+    ny = y + offsets[j, 1]
+    nz = z + offsets[j, 2]
+    if nx < 0 or ny < 0 or nz < 0 or nx > 65535 or ny > 65535 or nz > 65535:
+        return np.int64(-1)
+    return morton3(nx, ny, nz)
+
+
 @njit(cache=True)
-def _inflate_one(r, sign, radius, offsets, offset_start, R, free, meta, tab_key, tab_val):
-    """Add (sign=1) or remove (sign=-1) r's inflation over the sphere of `radius` voxels."""
-    rec_in_occ, rec_inf = R[3], R[4]
-    code = R[0][r]
+def _inflate_one(r, sign, radius, offsets, offset_start, R, free, meta, tab):
+    """Add (sign=1) or remove (sign=-1) r's inflation over the sphere of `radius` voxels.
+
+    Memory latency bounds this loop (random table slots and records), so a first pass only
+    touches the sphere's home slots: those loads do not depend on each other, their cache
+    misses overlap, and the look-ups that follow hit the cache (measured 1.4x faster)."""
+    code = R[r].code
     x = compact16(code)
     y = compact16(code >> 1)
     z = compact16(code >> 2)
-    for j in range(offset_start[radius], offset_start[radius + 1]):
-        nx = x + offsets[j, 0]
-        ny = y + offsets[j, 1]
-        nz = z + offsets[j, 2]
-        if nx < 0 or ny < 0 or nz < 0 or nx > 65535 or ny > 65535 or nz > 65535:
+    lo, hi = offset_start[radius], offset_start[radius + 1]
+    mask = tab.shape[0] - 1
+    warm = np.int64(0)
+    for j in range(lo, hi):
+        c = _sphere_code(x, y, z, offsets, j)
+        if c >= 0:
+            warm += tab[_slot(c, mask), 1]
+    meta[M_WARM] = warm  # keeps the touching loads from being optimised away
+    for j in range(lo, hi):
+        c = _sphere_code(x, y, z, offsets, j)
+        if c < 0:
             continue
-        c = morton3(nx, ny, nz)
-        t = find(tab_key, tab_val, c)
+        t = find(tab, c)
         if sign > 0:
             if t < 0:
-                t = _new_record(c, R, free, meta, tab_key, tab_val)
-            rec_inf[t] += 1
+                t = _new_record(c, R, free, meta, tab)
+            v = R[t]
+            if v.inf == 0:
+                meta[M_NINF] += 1
+            v.inf += 1
         else:
-            rec_inf[t] -= 1
-            if rec_inf[t] == 0 and rec_in_occ[t] == 0:
-                _drop_record(t, R, free, meta, tab_key)
+            v = R[t]
+            v.inf -= 1
+            if v.inf == 0:
+                meta[M_NINF] -= 1
+                if v.in_occ == 0:
+                    _drop_record(t, R, free, meta, tab)
 
 
 @njit(cache=True)
 def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, offsets, offset_start,
-            R, free, meta, tab_key, tab_val):
+            R, free, meta, tab):
     """Alg. 2: occupancy-changed voxels within inf_range of the sensor (re)inflate: a voxel that
     became occupied inflates the sphere of the current radius (remembered per voxel), one that
     stopped being occupied removes exactly the sphere it added. Returns voxels processed."""
-    rec_state, rec_radius = R[2], R[5]
     done = 0
     for i in range(n_changed):
         r = changed[i]
-        if rec_state[r] < 0:
+        state = R[r].state
+        if state < 0:
             continue
-        code = R[0][r]
+        code = R[r].code
         px = (np.float64(compact16(code)) - 32768 + 0.5) * resolution - sx
         py = (np.float64(compact16(code >> 1)) - 32768 + 0.5) * resolution - sy
         pz = (np.float64(compact16(code >> 2)) - 32768 + 0.5) * resolution - sz
         if inf_range >= 0 and px * px + py * py + pz * pz > inf_range * inf_range:
             continue
-        if rec_state[r] == 1 and rec_radius[r] < 0:
-            rec_radius[r] = radius_now
-            _inflate_one(r, 1, radius_now, offsets, offset_start, R, free, meta, tab_key, tab_val)
+        radius = R[r].radius
+        if state == 1 and radius < 0:
+            R[r].radius = radius_now
+            _inflate_one(r, 1, radius_now, offsets, offset_start, R, free, meta, tab)
             done += 1
-        elif rec_state[r] != 1 and rec_radius[r] >= 0:
-            _inflate_one(r, -1, rec_radius[r], offsets, offset_start, R, free, meta, tab_key, tab_val)
-            rec_radius[r] = -1
+        elif state != 1 and radius >= 0:
+            _inflate_one(r, -1, radius, offsets, offset_start, R, free, meta, tab)
+            R[r].radius = -1
             done += 1
     return done
 
 
 @njit(cache=True)
 def _unlink(r, R, meta):
-    rec_prev, rec_next = R[6], R[7]
-    p, n = rec_prev[r], rec_next[r]
+    p, n = R[r].prev, R[r].next
     if p >= 0:
-        rec_next[p] = n
+        R[p].next = n
     else:
         meta[M_HEAD] = n
     if n >= 0:
-        rec_prev[n] = p
+        R[n].prev = p
     else:
         meta[M_TAIL] = p
-    rec_prev[r] = NOT_IN_HISTORY
-    rec_next[r] = NOT_IN_HISTORY
+    R[r].prev = NOT_IN_HISTORY
+    R[r].next = NOT_IN_HISTORY
     meta[M_HSIZE] -= 1
 
 
 @njit(cache=True)
 def _push_back(r, R, meta):
-    rec_prev, rec_next = R[6], R[7]
-    rec_prev[r] = meta[M_TAIL]
-    rec_next[r] = -1
-    if meta[M_TAIL] >= 0:
-        rec_next[meta[M_TAIL]] = r
+    tail = meta[M_TAIL]
+    R[r].prev = tail
+    R[r].next = -1
+    if tail >= 0:
+        R[tail].next = r
     else:
         meta[M_HEAD] = r
     meta[M_TAIL] = r
@@ -240,84 +499,91 @@ def _push_back(r, R, meta):
 
 
 @njit(cache=True)
-def _remove_from_map(r, offsets, offset_start, R, free, meta, tab_key, tab_val):
+def _remove_from_map(r, offsets, offset_start, R, free, meta, tab, bkeys, bmask):
     """Take r out of the occupancy map; its inflation goes with it (exact, whatever the range)."""
-    if R[5][r] >= 0:
-        _inflate_one(r, -1, R[5][r], offsets, offset_start, R, free, meta, tab_key, tab_val)
-        R[5][r] = -1
-    if R[6][r] != NOT_IN_HISTORY:
+    if R[r].radius >= 0:
+        _inflate_one(r, -1, R[r].radius, offsets, offset_start, R, free, meta, tab)
+        R[r].radius = -1
+    if R[r].prev != NOT_IN_HISTORY:
         _unlink(r, R, meta)
-    R[3][r] = 0
-    if R[4][r] == 0:
-        _drop_record(r, R, free, meta, tab_key)
+    R[r].in_occ = 0
+    _clear_present(R[r].code, bkeys, bmask, meta)
+    if R[r].inf == 0:
+        _drop_record(r, R, free, meta, tab)
     else:
-        R[2][r] = 2  # stays only as an inflated voxel of the inflation map
+        R[r].state = 2  # stays only as an inflated voxel of the inflation map
 
 
 @njit(cache=True)
-def manage(touched, n_touched, n_lim, oldest_allowed, offsets, offset_start, R, free, meta, tab_key, tab_val):
+def manage(touched, n_touched, n_lim, oldest_allowed, offsets, offset_start, R, free, meta, tab, bkeys, bmask):
     """Alg. 3: touched occupied voxels move to the back of the history, known-free ones leave the
     map, then the oldest leave until at most n_lim remain (and those older than the TTL).
     Returns how many voxels were removed by the limit / TTL."""
-    rec_state = R[2]
+    warm = np.int64(0)  # touch the history neighbours first (see _inflate_one)
     for i in range(n_touched):
         r = touched[i]
-        if rec_state[r] < 0 or R[3][r] == 0:
+        p, n = R[r].prev, R[r].next
+        if p >= 0:
+            warm += R[p].state
+        if n >= 0:
+            warm += R[n].state
+    meta[M_WARM] = warm
+    for i in range(n_touched):
+        r = touched[i]
+        if R[r].state < 0 or R[r].in_occ == 0:
             continue
-        if R[6][r] != NOT_IN_HISTORY:
+        if R[r].prev != NOT_IN_HISTORY:
             _unlink(r, R, meta)
-        if rec_state[r] == 1:
+        if R[r].state == 1:
             _push_back(r, R, meta)
-        elif rec_state[r] == 0:
-            _remove_from_map(r, offsets, offset_start, R, free, meta, tab_key, tab_val)
+        elif R[r].state == 0:
+            _remove_from_map(r, offsets, offset_start, R, free, meta, tab, bkeys, bmask)
     removed = 0
-    while meta[M_HSIZE] > 0 and (meta[M_HSIZE] > n_lim or R[10][meta[M_HEAD]] < oldest_allowed):
-        _remove_from_map(meta[M_HEAD], offsets, offset_start, R, free, meta, tab_key, tab_val)
+    while meta[M_HSIZE] > 0 and (meta[M_HSIZE] > n_lim or R[meta[M_HEAD]].last < oldest_allowed):
+        _remove_from_map(meta[M_HEAD], offsets, offset_start, R, free, meta, tab, bkeys, bmask)
         removed += 1
     return removed
 
 
 @njit(cache=True)
-def rehash(tab_key, tab_val, rec_code, rec_state, n_records):
+def rehash(tab, R, n_records):
     """Rebuild the table from the live records (drops tombstones)."""
-    tab_key[:] = EMPTY
-    mask = tab_key.shape[0] - 1
+    tab[:, :] = EMPTY
+    mask = tab.shape[0] - 1
     for r in range(n_records):
-        if rec_state[r] >= 0:
-            s = _slot(rec_code[r], mask)
-            while tab_key[s] != EMPTY:
+        if R[r].state >= 0:
+            code = R[r].code
+            s = _slot(code, mask)
+            while tab[s, 0] != EMPTY:
                 s = (s + 1) & mask
-            tab_key[s] = rec_code[r]
-            tab_val[s] = r
-
-
+            tab[s, 0] = code
+            tab[s, 1] = r
 
 
 @njit(cache=True)
-def load_records(codes, values, l_occ, l_free, R, free, meta, tab_key, tab_val, presence):
+def load_records(codes, values, l_occ, l_free, R, free, meta, tab, bkeys, bmask):
     """Snapshot load: every stored voxel back into the occupancy map (inflation is rebuilt as
     the map is used again)."""
     for i in range(codes.shape[0]):
-        r = _new_record(codes[i], R, free, meta, tab_key, tab_val)
-        v = values[i]
-        R[1][r] = v
-        R[3][r] = 1
-        R[2][r] = 1 if v > l_occ else (0 if v < l_free else 2)
-        bit = _presence_bit(codes[i])
-        presence[bit >> 6] |= np.int64(1) << (bit & 63)
+        r = _new_record(codes[i], R, free, meta, tab)
+        x = values[i]
+        R[r].l = x
+        R[r].in_occ = 1
+        R[r].state = 1 if x > l_occ else (0 if x < l_free else 2)
+        _mark_present(codes[i], bkeys, bmask, meta)
 
 
 @njit(cache=True)
-def restore(radius, last, hits, misses, history, offsets, offset_start, R, free, meta, tab_key, tab_val):
+def restore(radius, last, hits, misses, history, offsets, offset_start, R, free, meta, tab):
     """After load_records (same order as the stored voxels): per-voxel radius, stamps and counts,
     the inflation map re-derived from the radii, and the history list in its stored order."""
     n = radius.shape[0]
     for r in range(n):
-        R[8][r] = hits[r]
-        R[9][r] = misses[r]
-        R[10][r] = last[r]
+        R[r].hits = hits[r]
+        R[r].misses = misses[r]
+        R[r].last = last[r]
         if radius[r] >= 0:
-            R[5][r] = radius[r]
-            _inflate_one(r, 1, radius[r], offsets, offset_start, R, free, meta, tab_key, tab_val)
+            R[r].radius = radius[r]
+            _inflate_one(r, 1, radius[r], offsets, offset_start, R, free, meta, tab)
     for i in range(history.shape[0]):
         _push_back(history[i], R, meta)

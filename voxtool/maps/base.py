@@ -46,6 +46,7 @@ class PreparedScan:
     merged_rays: int = 0  # rays skipped because another ray of the scan has the same voxel path
     stamp_ns: int = 0  # scan time (backends that keep time, e.g. the hash map's history)
     origin: np.ndarray | None = None  # sensor origin (the hash map's inflation range)
+    scan: Scan | None = None  # for backends whose ray casting depends on the map (hash map)
 
 
 class MapBackend(Protocol):

@@ -12,12 +12,12 @@ import numpy as np
 from voxtool.config import MapParams, SensorModel, logodds
 from voxtool.errors import ParameterError
 from voxtool.kernels import hashmap as K
+from voxtool.keys import coords_to_keys
 from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
-from voxtool.maps.octree import OctreeMap, prepare_scan
+from voxtool.maps.octree import RAY_POOL, SMALL_SCAN, OctreeMap, merge_rays
 from voxtool.sources.scan import Scan
 
 SCHEDULABLE = ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")
-_DTYPES = (np.int64, np.float32, np.int8, np.uint8, np.int32, np.int32, np.int32, np.int32, np.int32, np.int32, np.int64)
 
 
 def sphere_offsets(max_radius: int) -> tuple[np.ndarray, np.ndarray]:
@@ -48,14 +48,15 @@ class HashVoxelMap:
             if k not in SCHEDULABLE:
                 raise ParameterError(f"schedule: '{k}' is not one of {', '.join(SCHEDULABLE)}")
         self.period_ns = int(1e9 / rate_hz)
-        self.records = tuple(np.zeros(1024, dtype=d) for d in _DTYPES)
-        self.records[2][:] = -1
+        self.rec = K.new_records(1024)
         self.free = np.zeros(1024, dtype=np.int64)
-        self.tab_key = np.full(4096, K.EMPTY, dtype=np.int64)
-        self.tab_val = np.zeros(4096, dtype=np.int64)
-        self.meta = np.array([-1, -1, 0, 0, 0, 0, 0], dtype=np.int64)
-        self.presence = np.zeros(K.PRESENCE_BITS // 64, dtype=np.int64)
+        self.tab = K.new_table(4096)
+        self.meta = np.zeros(K.META_FIELDS, dtype=np.int64)
+        self.meta[[K.M_HEAD, K.M_TAIL]] = -1
+        self.bkeys, self.bmask = K.new_bricks(1024)
         self.scan_metrics: list[dict] = []
+        self._set_size = 1 << 14  # de-duplicating sets of the ray casting, one per half scan
+        self._sets: dict[int, np.ndarray] = {}
         self.newly_occupied: np.ndarray = np.zeros(0, np.int64)
 
     # -- parameters ----------------------------------------------------------------------------
@@ -80,31 +81,36 @@ class HashVoxelMap:
                 self.set_params(**{k: value})
 
     # -- storage -------------------------------------------------------------------------------
-    def _reserve(self, new_records: int) -> None:
+    def _reserve(self, new_records: int, new_voxels: int = 0) -> None:
+        """Room for new_records more records, new_voxels of which may enter the occupancy map."""
         need = int(self.meta[K.M_NEXT]) + new_records
-        cap = self.records[0].shape[0]
+        cap = self.rec.shape[0]
         if need > cap:
             new_cap = max(need, 2 * cap)
-            grown = []
-            for arr in self.records:
-                g = np.zeros(new_cap, dtype=arr.dtype)
-                g[:cap] = arr
-                grown.append(g)
-            grown[2][cap:] = -1
-            self.records = tuple(grown)
+            grown = K.new_records(new_cap)
+            grown[:cap] = self.rec
+            self.rec = grown
             f = np.zeros(new_cap, dtype=np.int64)
             f[: self.free.shape[0]] = self.free
             self.free = f
         live = int(self.meta[K.M_LIVE]) + new_records
-        tab = self.tab_key.shape[0]
-        if 2 * (live + int(self.meta[K.M_TOMBS])) > tab:
-            size = tab
+        size = self.tab.shape[0]
+        if 2 * (live + int(self.meta[K.M_TOMBS])) > size:
             while 2 * live > size // 2:
                 size *= 2
-            self.tab_key = np.full(size, K.EMPTY, dtype=np.int64)
-            self.tab_val = np.zeros(size, dtype=np.int64)
-            K.rehash(self.tab_key, self.tab_val, self.records[0], self.records[2], int(self.meta[K.M_NEXT]))
+            self.tab = K.new_table(size)
+            K.rehash(self.tab, self.rec, int(self.meta[K.M_NEXT]))
             self.meta[K.M_TOMBS] = 0
+        # every voxel entering the occupancy map may start a brick of the brick table
+        bricks = int(self.meta[K.M_BRICKS]) + new_voxels
+        size = self.bkeys.shape[0]
+        if 2 * (bricks + int(self.meta[K.M_BTOMBS])) > size:
+            while 2 * bricks > size // 2:
+                size *= 2
+            bkeys, bmask = K.new_bricks(size)
+            K.brick_rehash(self.bkeys, self.bmask, bkeys, bmask)
+            self.bkeys, self.bmask = bkeys, bmask
+            self.meta[K.M_BTOMBS] = 0
 
     # -- MapBackend ------------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -112,53 +118,103 @@ class HashVoxelMap:
         probe = HashVoxelMap(MapParams(resolution=0.5), self.sensor, n_lim=1, d_inf=0.5)
         for x in (1.0, 3.0):
             probe.integrate(Scan(np.array([[x, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
+        # the table rebuilds run only when a table grows: load them now, not in a timed scan
+        K.rehash(probe.tab, probe.rec, int(probe.meta[K.M_NEXT]))
+        K.brick_rehash(probe.bkeys, probe.bmask, *K.new_bricks(probe.bkeys.shape[0]))
 
     def prepare(self, scan: Scan) -> PreparedScan:
+        """Input range and key checks only: which misses matter depends on the map, so the rays
+        are cast in apply()."""
         self._schedule_for(scan.index)
         d_in = self.values["d_in"]
         if d_in >= 0 and scan.points.shape[0]:
             d = np.linalg.norm(scan.points.astype(np.float64) - scan.origin.astype(np.float64), axis=1)
             scan = Scan(scan.points[d <= d_in], scan.origin, scan.index, scan.stamp_ns, scan.source)
-        prepared = prepare_scan(scan, self.params)
-        prepared.stamp_ns = scan.stamp_ns if scan.stamp_ns else scan.index * self.period_ns
-        prepared.origin = scan.origin
-        return prepared
+        merged = 0
+        if scan.points.shape[0]:
+            coords_to_keys(scan.origin[None, :], self.params.resolution, what=f"{scan.source}: sensor origin of scan")
+            coords_to_keys(scan.points, self.params.resolution, what=f"{scan.source}: point")
+            if self.params.merge_rays:
+                n = scan.points.shape[0]
+                scan = merge_rays(scan, self.params)
+                merged = n - scan.points.shape[0]
+        stamp = scan.stamp_ns if scan.stamp_ns else scan.index * self.period_ns
+        return PreparedScan(np.empty(0, np.int64), 0, 0.0, int(scan.points.shape[0]), merged, stamp_ns=stamp,
+                            origin=scan.origin, scan=scan)
+
+    def _trace(self, scan: Scan) -> tuple[np.ndarray, int]:
+        """The scan's Morton-sorted (code << 1 | hit) updates that can change this map: every
+        endpoint voxel, and the passed-through voxels that may be in the occupancy map; each
+        voxel once, a hit winning over a miss (the one-update-per-voxel rule of OctoMap)."""
+        n = scan.points.shape[0]
+        if n == 0:
+            return np.empty(0, np.int64), 0
+
+        def part(which: int, lo: int, hi: int) -> tuple[np.ndarray, int]:
+            while True:
+                size = self._set_size
+                seen = self._sets.get(which)
+                if seen is None or seen.shape[0] != size:
+                    seen = self._sets[which] = np.full(size, K.EMPTY, dtype=np.int64)
+                slots = np.empty(size // 2 + 1, dtype=np.int64)
+                out = np.empty(size // 2 + 1, dtype=np.int64)
+                k, steps = K.trace_present(scan.points[lo:hi], scan.origin, self.params.resolution,
+                                           self.params.max_range, self.bkeys, self.bmask,
+                                           seen, slots, out)
+                if k >= 0:
+                    return out[:k], steps
+                self._set_size *= 2  # rare: the set grows to the busiest scan seen
+
+        if n < SMALL_SCAN:
+            parts = [part(0, 0, n)]
+        else:
+            parts = list(RAY_POOL.map(lambda args: part(*args), ((0, 0, n // 2), (1, n // 2, n))))
+        packed = np.sort(np.concatenate([p[0] for p in parts]))
+        if len(parts) > 1 and packed.shape[0]:
+            # a voxel both halves updated: keep its last entry, the hit if either half hit it
+            codes = packed >> 1
+            packed = packed[np.append(codes[1:] != codes[:-1], True)]
+        return packed, sum(p[1] for p in parts)
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         v, s = self.values, self.sensor
-        packed = prepared.packed
         stamp = prepared.stamp_ns
         origin = (prepared.origin if prepared.origin is not None else np.zeros(3, np.float32)).astype(np.float64)
         t0 = time.perf_counter()
+        if prepared.scan is not None:
+            packed, steps = self._trace(prepared.scan)
+        else:
+            packed, steps = prepared.packed, prepared.steps
+        t_cast = time.perf_counter()
         n_hits = int((packed & 1).sum())
-        self._reserve(n_hits)
+        self._reserve(n_hits, n_hits)
         touched = np.empty(packed.shape[0], dtype=np.int64)
         new = np.empty(packed.shape[0], dtype=np.bool_)
         changed = np.empty(packed.shape[0], dtype=np.int64)
         nt, nc = K.input_update(packed, stamp, np.float32(logodds(v["p_init"])), np.float32(s.hit_log),
                                 np.float32(s.miss_log), np.float32(s.clamp_min_log), np.float32(s.clamp_max_log),
-                                np.float32(s.threshold_log), np.float32(logodds(self.p_free)), self.records, self.free,
-                                self.meta, self.tab_key, self.tab_val, self.presence, touched, new, changed)
-        state = self.records[2]
+                                np.float32(s.threshold_log), np.float32(logodds(self.p_free)), self.rec, self.free,
+                                self.meta, self.tab, self.bkeys, self.bmask, touched, new, changed)
         ch = changed[:nc]
-        self.newly_occupied = self.records[0][ch[state[ch] == 1]].copy()
+        self.newly_occupied = self.rec["code"][ch[self.rec["state"][ch] == 1]]
         t1 = time.perf_counter()
         sphere = int(self.offset_start[self.radius_vox + 1] - self.offset_start[self.radius_vox])
         self._reserve(nc * sphere)
         K.inflate(changed, nc, origin[0], origin[1], origin[2], v["inf_range"], self.params.resolution,
-                  self.radius_vox, self.offsets, self.offset_start, self.records, self.free, self.meta,
-                  self.tab_key, self.tab_val)
+                  self.radius_vox, self.offsets, self.offset_start, self.rec, self.free, self.meta, self.tab)
         t2 = time.perf_counter()
         n_lim = int(v["n_lim"]) if v["n_lim"] >= 0 else np.iinfo(np.int64).max
         oldest = stamp - int(v["ttl"] * 1e9) if v["ttl"] >= 0 else np.iinfo(np.int64).min
-        K.manage(touched, nt, n_lim, oldest, self.offsets, self.offset_start, self.records, self.free, self.meta,
-                 self.tab_key, self.tab_val)
+        K.manage(touched, nt, n_lim, oldest, self.offsets, self.offset_start, self.rec, self.free, self.meta, self.tab,
+                 self.bkeys, self.bmask)
         t3 = time.perf_counter()
-        self.scan_metrics.append({"n_occ": int(self.meta[K.M_HSIZE]), "n_inf": self.n_inflated(),
-                                  "t_tot_ms": 1e3 * (prepared.seconds + t3 - t0), "t_occ_ms": 1e3 * (prepared.seconds + t1 - t0),
+        self.scan_metrics.append({"n_occ": int(self.meta[K.M_HSIZE]), "n_inf": int(self.meta[K.M_NINF]),
+                                  "t_tot_ms": 1e3 * (prepared.seconds + t3 - t0),
+                                  "t_occ_ms": 1e3 * (prepared.seconds + t1 - t0),
                                   "t_inf_ms": 1e3 * (t2 - t1), "t_m_ms": 1e3 * (t3 - t2), "memory_bytes": self.memory_bytes()})
-        return IntegrateTiming(raycast=prepared.seconds, update=t3 - t0, voxel_updates=int(packed.shape[0]),
-                               ray_steps=prepared.steps, rays=prepared.rays, merged_rays=prepared.merged_rays)
+        return IntegrateTiming(raycast=prepared.seconds + t_cast - t0, update=t3 - t_cast,
+                               voxel_updates=int(packed.shape[0]), ray_steps=steps, rays=prepared.rays,
+                               merged_rays=prepared.merged_rays)
 
     def integrate(self, scan: Scan) -> IntegrateTiming:
         return self.apply(self.prepare(scan))
@@ -173,30 +229,32 @@ class HashVoxelMap:
 
     # -- views ---------------------------------------------------------------------------------
     def _live(self) -> np.ndarray:
-        n = int(self.meta[K.M_NEXT])
-        return np.flatnonzero(self.records[2][:n] >= 0)
+        """Records in use (the inflation map), as a structured array."""
+        live = self.rec[: int(self.meta[K.M_NEXT])]
+        return live[live["state"] >= 0]
+
+    def _occupancy_map(self) -> np.ndarray:
+        """Records of the occupancy map (occupied and undecided voxels) in Morton order."""
+        live = self._live()
+        live = live[live["in_occ"] == 1]
+        return live[np.argsort(live["code"])]
 
     def occupied_codes(self) -> np.ndarray:
-        r = self._live()
-        r = r[(self.records[3][r] == 1) & (self.records[2][r] == 1)]
-        return np.sort(self.records[0][r])
+        occ = self._occupancy_map()
+        return occ["code"][occ["state"] == 1]
 
     def inflation_counts(self) -> dict[int, int]:
-        r = self._live()
-        r = r[self.records[4][r] > 0]
-        return dict(zip(self.records[0][r].tolist(), self.records[4][r].tolist()))
+        live = self._live()
+        live = live[live["inf"] > 0]
+        return dict(zip(live["code"].tolist(), live["inf"].tolist()))
 
     def n_inflated(self) -> int:
-        n = int(self.meta[K.M_NEXT])
-        return int(((self.records[2][:n] >= 0) & (self.records[4][:n] > 0)).sum())
+        return int(self.meta[K.M_NINF])
 
     def leaves(self) -> Leaves:
         """The occupancy map (occupied and undecided voxels) as one-voxel leaves."""
-        r = self._live()
-        r = r[self.records[3][r] == 1]
-        order = np.argsort(self.records[0][r])
-        r = r[order]
-        return Leaves(self.records[0][r].copy(), np.full(r.shape[0], 16, np.uint8), self.records[1][r].copy())
+        occ = self._occupancy_map()
+        return Leaves(occ["code"].copy(), np.full(occ.shape[0], 16, np.uint8), occ["l"].copy())
 
     def query(self, codes: np.ndarray) -> np.ndarray:
         lv = self.leaves()
@@ -212,14 +270,13 @@ class HashVoxelMap:
         return int(self.leaves().codes.shape[0]), 0
 
     def memory_bytes(self) -> int:
-        return int(sum(a.nbytes for a in self.records) + self.free.nbytes + self.tab_key.nbytes + self.tab_val.nbytes
-                   + self.presence.nbytes)
+        return int(self.rec.nbytes + self.free.nbytes + self.tab.nbytes + self.bkeys.nbytes + self.bmask.nbytes)
 
     def _history(self) -> np.ndarray:
         """Record indices of the history list, oldest first."""
         out = np.empty(int(self.meta[K.M_HSIZE]), dtype=np.int64)
         r, k = int(self.meta[K.M_HEAD]), 0
-        nxt = self.records[7]
+        nxt = self.rec["next"]
         while r >= 0 and k < out.shape[0]:  # a snapshot write, not a hot path
             out[k] = r
             r = int(nxt[r])
@@ -229,15 +286,17 @@ class HashVoxelMap:
     def state_arrays(self) -> dict[str, np.ndarray]:
         """Occupancy-map voxels (Morton order) plus what makes the map resume exactly: each
         voxel's inflation radius, last-update stamp, hit/miss counts, and the history order."""
-        r = self._live()
-        r = r[self.records[3][r] == 1]
-        r = r[np.argsort(self.records[0][r])]
-        position = np.full(int(self.meta[K.M_NEXT]), -1, dtype=np.int64)
+        n = int(self.meta[K.M_NEXT])
+        live = self.rec[:n]
+        r = np.flatnonzero((live["state"] >= 0) & (live["in_occ"] == 1))
+        r = r[np.argsort(live["code"][r])]
+        occ = live[r]
+        position = np.full(n, -1, dtype=np.int64)
         position[r] = np.arange(r.shape[0])
-        return {"leaf_codes": self.records[0][r].copy(), "leaf_depths": np.full(r.shape[0], 16, np.uint8),
-                "leaf_values": self.records[1][r].copy(), "hm_radius": self.records[5][r].astype(np.int32),
-                "hm_last": self.records[10][r].copy(), "hm_hits": self.records[8][r].copy(),
-                "hm_misses": self.records[9][r].copy(), "hm_history": position[self._history()]}
+        return {"leaf_codes": occ["code"].copy(), "leaf_depths": np.full(r.shape[0], 16, np.uint8),
+                "leaf_values": occ["l"].copy(), "hm_radius": occ["radius"].astype(np.int32),
+                "hm_last": occ["last"].copy(), "hm_hits": occ["hits"].copy(),
+                "hm_misses": occ["misses"].copy(), "hm_history": position[self._history()]}
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
         from voxtool.errors import FormatError
@@ -254,12 +313,11 @@ class HashVoxelMap:
         if max_r + 1 >= self.offset_start.shape[0]:
             self.offsets, self.offset_start = sphere_offsets(max_r)
         sphere = int(self.offset_start[max_r + 1] - self.offset_start[max_r])
-        self._reserve(n + int((radius >= 0).sum()) * sphere)
+        self._reserve(n + int((radius >= 0).sum()) * sphere, n)
         K.load_records(codes, values, np.float32(self.sensor.threshold_log), np.float32(logodds(self.p_free)),
-                       self.records, self.free, self.meta, self.tab_key, self.tab_val, self.presence)
+                       self.rec, self.free, self.meta, self.tab, self.bkeys, self.bmask)
         K.restore(radius.astype(np.int32), last.astype(np.int64), hits.astype(np.int32), misses.astype(np.int32),
-                  history.astype(np.int64), self.offsets, self.offset_start, self.records, self.free, self.meta,
-                  self.tab_key, self.tab_val)
+                  history.astype(np.int64), self.offsets, self.offset_start, self.rec, self.free, self.meta, self.tab)
 
     def extra_meta(self) -> dict[str, Any]:
         return {k: self.values[k] for k in ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")} | {"p_free": self.p_free}

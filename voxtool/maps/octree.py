@@ -92,7 +92,7 @@ class OctreePool:
         return int(self.child.nbytes + self.mask.nbytes + self.value.nbytes + self.free.nbytes)
 
 
-_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="voxtool-raycast")
+RAY_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="voxtool-raycast")
 _SPLITS = 2  # this machine class has 2 cores; each thread traces half of the rays
 SMALL_SCAN = 2_000  # points; below this one thread traces the whole scan
 _BUFFERS = threading.local()
@@ -147,7 +147,7 @@ def scan_updates(scan: Scan, params: MapParams) -> tuple[np.ndarray, int, int]:
         parts = [_trace_part(scan, params, 0, n)]
     else:
         cuts = np.linspace(0, n, _SPLITS + 1).astype(int)
-        parts = list(_POOL.map(lambda k: _trace_part(scan, params, cuts[k], cuts[k + 1]), range(_SPLITS)))
+        parts = list(RAY_POOL.map(lambda k: _trace_part(scan, params, cuts[k], cuts[k + 1]), range(_SPLITS)))
     bricks = np.concatenate([p[0] for p in parts])
     touched = np.concatenate([p[1] for p in parts])
     occ = np.concatenate([p[2] for p in parts])
