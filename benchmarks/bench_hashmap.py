@@ -1,4 +1,4 @@
-"""Hash-map backend on quick_shack (Livox Avia, the sensor of the seed's Urban set) at 0.1 m with
+"""Hash-map backend on quick_shack/pcd (Livox Avia, the sensor of the seed's Urban set) at 0.1 m with
 a 0.2 m inflation radius: a Table-I style row per setting, and the relayed map built only from
 the shared frames. Rows: n_lim 50,000 or unlimited, inflation range (the paper's Table I `d_inf`
 column, `inf_range` here) 8 m as in the paper's rows a-c, or unlimited.
@@ -58,7 +58,7 @@ def main() -> None:
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
     ap.add_argument("--out", default="bench-results/hashmap.json")
     args = ap.parse_args()
-    src = Path(args.data) / "quick_shack" / "quick_shack.mcap"
+    src = Path(args.data) / "quick_shack" / "pcd"
     rows = []
     print(f"{'n_lim':>7} {'inf_range':>9} {'n_occ':>7} {'n_inf':>7} {'t_tot med':>9} {'p95':>6} {'mean':>6} "
           f"{'t_occ':>6} {'t_inf':>6} {'t_m':>6} {'mem MB':>6} {'shared B/s':>10} {'reduction':>9}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -90,6 +91,11 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
         return (scan, backend.prepare(scan) if scan is not None else None, t1 - t0)
 
     bar = tqdm(total=stream.count, unit="scan", disable=not progress, file=sys.stderr, desc="build")
+    # The cyclic garbage collector would stop a scan now and then to re-scan every object of the
+    # compiled kernels (perf: ~7 % of a hash-map build); a scan loop creates almost no cycles,
+    # so it is paused until the loop ends.
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
     ahead = ThreadPoolExecutor(max_workers=1, thread_name_prefix="voxtool-prepare")
     try:
         future = ahead.submit(read_and_prepare)
@@ -120,6 +126,8 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
             report.last_stamp_ns = scan.stamp_ns
             bar.update(1)
     finally:
+        if gc_was_enabled:
+            gc.enable()
         ahead.shutdown(wait=True, cancel_futures=True)
         bar.close()
     report.time_total = time.perf_counter() - t_start

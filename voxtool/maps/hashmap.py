@@ -81,8 +81,8 @@ class HashVoxelMap:
                 self.set_params(**{k: value})
 
     # -- storage -------------------------------------------------------------------------------
-    def _reserve(self, new_records: int, new_voxels: int = 0) -> None:
-        """Room for new_records more records, new_voxels of which may enter the occupancy map."""
+    def _reserve(self, new_records: int, new_bricks: int = 0) -> None:
+        """Room for new_records more records and new_bricks more bricks of the brick table."""
         need = int(self.meta[K.M_NEXT]) + new_records
         cap = self.rec.shape[0]
         if need > cap:
@@ -101,11 +101,10 @@ class HashVoxelMap:
             self.tab = K.new_table(size)
             K.rehash(self.tab, self.rec, int(self.meta[K.M_NEXT]))
             self.meta[K.M_TOMBS] = 0
-        # every voxel entering the occupancy map may start a brick of the brick table
-        bricks = int(self.meta[K.M_BRICKS]) + new_voxels
+        bricks = int(self.meta[K.M_BRICKS]) + new_bricks
         size = self.bkeys.shape[0]
         if 2 * (bricks + int(self.meta[K.M_BTOMBS])) > size:
-            while 2 * bricks > size // 2:
+            while 2 * bricks > size:
                 size *= 2
             bkeys, bmask = K.new_bricks(size)
             K.brick_rehash(self.bkeys, self.bmask, bkeys, bmask)
@@ -186,8 +185,9 @@ class HashVoxelMap:
         else:
             packed, steps = prepared.packed, prepared.steps
         t_cast = time.perf_counter()
-        n_hits = int((packed & 1).sum())
-        self._reserve(n_hits, n_hits)
+        hit_bricks = packed[(packed & 1) == 1] >> 10  # Morton-sorted: a brick's voxels are adjacent
+        n_hits = hit_bricks.shape[0]
+        self._reserve(n_hits, int(np.count_nonzero(np.diff(hit_bricks))) + 1 if n_hits else 0)
         touched = np.empty(packed.shape[0], dtype=np.int64)
         new = np.empty(packed.shape[0], dtype=np.bool_)
         changed = np.empty(packed.shape[0], dtype=np.int64)
@@ -313,7 +313,7 @@ class HashVoxelMap:
         if max_r + 1 >= self.offset_start.shape[0]:
             self.offsets, self.offset_start = sphere_offsets(max_r)
         sphere = int(self.offset_start[max_r + 1] - self.offset_start[max_r])
-        self._reserve(n + int((radius >= 0).sum()) * sphere, n)
+        self._reserve(n + int((radius >= 0).sum()) * sphere, int(np.unique(codes >> 9).shape[0]))
         K.load_records(codes, values, np.float32(self.sensor.threshold_log), np.float32(logodds(self.p_free)),
                        self.rec, self.free, self.meta, self.tab, self.bkeys, self.bmask)
         K.restore(radius.astype(np.int32), last.astype(np.int64), hits.astype(np.int32), misses.astype(np.int32),
