@@ -29,7 +29,7 @@ FREE, OCCUPIED, UNKNOWN, UNCHANGED = 0, 1, 2, 3
 HEADER = struct.Struct("<4sBBBB16sIqd3d3H3HIIII")
 MAX_CELLS = 1 << 31  # a box larger than this is refused before anything is allocated
 MAX_RAW = 1 << 30  # 1 GiB of uncompressed payload at most
-ZSTD_LEVEL = 3
+ZSTD_LEVEL = 9  # bytes vs speed on the real streams: docs/packets.md
 ZLIB_LEVEL = 6
 
 
