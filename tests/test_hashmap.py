@@ -11,7 +11,7 @@ from test_octree import world_scans
 
 from voxtool.config import MapParams, SensorModel, logodds
 from voxtool.keys import morton_decode, morton_encode
-from voxtool.maps.hashmap import HashVoxelMap
+from voxtool.maps.hashmap import HashVoxelMap, K
 
 F32 = np.float32
 S = SensorModel()
@@ -124,10 +124,24 @@ def as_keys(codes):
     return {tuple(int(v) for v in k) for k in morton_decode(np.asarray(codes, dtype=np.int64))}
 
 
+def brick_table_voxels(m: HashVoxelMap) -> set:
+    """The voxels the ray casting's brick table says the occupancy map holds."""
+    out = set()
+    for slot in np.flatnonzero(m.bkeys >= 0):
+        b = int(m.bkeys[slot])
+        base = ((b >> 26) << 3, ((b >> 13) & 8191) << 3, (b & 8191) << 3)
+        bits = np.unpackbits(m.bmask[slot].view(np.uint8), bitorder="little")
+        for v in np.flatnonzero(bits).tolist():
+            out.add((base[0] + (v & 7), base[1] + ((v >> 3) & 7), base[2] + (v >> 6)))
+    return out
+
+
 def check(m: HashVoxelMap, ref: ReferenceMap):
     assert as_keys(m.occupied_codes()) == ref.occupied()
     got = m.inflation_counts()
     assert {tuple(int(v) for v in morton_decode(np.array([c]))[0]): n for c, n in got.items()} == ref.inflation()
+    assert brick_table_voxels(m) == as_keys(m.leaves().codes)  # exact: no stale or missing voxel
+    assert int(m.meta[K.M_NINF]) == len(got)
 
 
 @pytest.mark.parametrize("kw", [

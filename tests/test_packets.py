@@ -223,3 +223,19 @@ def test_periodic_keyframes_keep_the_replay_exact(tmp_path):
     fused = fuse([out])
     codes, states = map_states(backend)
     assert np.array_equal(fused.codes, codes) and np.array_equal(fused.states, states)
+
+
+def test_bandwidth_windows_and_average():
+    from voxtool.codec.logstats import _bandwidth
+
+    s = 1_000_000_000
+    # 10 s of 100-byte packets at 2 Hz and a 5 kB burst in second 4: the busiest second holds it
+    stamps = np.arange(20) * s // 2
+    sizes = np.full(20, 100)
+    sizes[9] = 5000
+    bw = _bandwidth(stamps, sizes, 10.0)
+    assert bw["avg_Bps"] == pytest.approx(sizes.sum() / 10.0)
+    assert bw["max_Bps"] == 5100
+    # a log shorter than one window: its busiest second is not quieter than its average
+    short = _bandwidth(np.array([0, s // 4]), np.array([300, 300]), 0.5)
+    assert short["avg_Bps"] == 1200 and short["max_Bps"] == 1200
