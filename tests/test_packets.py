@@ -239,3 +239,21 @@ def test_bandwidth_windows_and_average():
     # a log shorter than one window: its busiest second is not quieter than its average
     short = _bandwidth(np.array([0, s // 4]), np.array([300, 300]), 0.5)
     assert short["avg_Bps"] == 1200 and short["max_Bps"] == 1200
+
+
+@pytest.mark.parametrize("n_lim", [-1, 400])
+def test_hash_map_logs_decode_to_the_hash_map(tmp_path, n_lim):
+    """The hash map casts rays in apply() and drops voxels beyond its limit: a log of it must
+    still replay to its map (voxels that left read as unknown, so they are absent)."""
+    src = scene_dir(tmp_path)
+    backend = make_backend("hashmap", MapParams(0.1), SensorModel(), n_lim=n_lim, d_inf=0.2)
+    out = tmp_path / "h.mcap"
+    report = encode_stream(open_source(src, SourceOptions()), backend, out,
+                           EncodeOptions(max_changes=300, max_interval=0.25), {}, progress=False)
+    assert report["packets"] > 5
+    fused = fuse([out])
+    codes, states = map_states(backend)
+    known = fused.states != 2
+    assert np.array_equal(fused.codes[known], codes) and np.array_equal(fused.states[known], states)
+    if n_lim >= 0:
+        assert len(backend.occupied_codes()) <= n_lim < report["changed_voxels"]

@@ -125,6 +125,38 @@ def scan_setup(kw: dict):
     return options, params, sensor
 
 
+def backend_options(func):
+    """Options that choose and configure the map backend (build, encode)."""
+    options = [
+        click.option("--backend", type=click.Choice(BACKEND_NAMES), default="octree", show_default=True,
+                     help="Map backend (docs/backends.md)."),
+        click.option("--param", "backend_params", multiple=True, metavar="KEY=VALUE",
+                     help="Backend option, e.g. tau=4, buckets=65536, threads=2, order=morton (octocache); "
+                          "pool_blocks=4096, map_size=40 (tiny); n_lim=50000, d_inf=0.2, inf_range=8, d_in=30, ttl=5, "
+                          "p_init=0.5 (hashmap)."),
+        click.option("--pool-blocks", type=int, help="tiny: memory budget in blocks of 8 nodes (<= 4096: 16-bit nodes)."),
+        click.option("--map-size", type=float, help="tiny: edge of the cubic map extent in metres (sets the depth)."),
+        click.option("--schedule", multiple=True, metavar="SCAN:KEY=VALUE",
+                     help="hashmap: change p_init, n_lim, d_in, d_inf, inf_range or ttl from scan SCAN on (repeatable)."),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+def backend_setup(kw: dict) -> tuple[str, dict]:
+    """(backend name, its options) from the backend_options values (removed from kw)."""
+    extra = parse_params(kw.pop("backend_params"))
+    pool_blocks, map_size, schedule = kw.pop("pool_blocks"), kw.pop("map_size"), kw.pop("schedule")
+    if pool_blocks is not None:
+        extra["pool_blocks"] = pool_blocks
+    if map_size is not None:
+        extra["map_size"] = map_size
+    if schedule:
+        extra["schedule"] = parse_schedule(schedule)
+    return kw.pop("backend"), extra
+
+
 def resolve_source(source, sample):
     from voxtool.errors import ParameterError
 
@@ -137,35 +169,20 @@ def resolve_source(source, sample):
 @click.argument("source", required=False, type=click.Path(path_type=Path))
 @click.option("--sample", is_flag=True, help="Use the small real sample shipped with voxtool (norlab, BSD-3) as SOURCE.")
 @click.option("-o", "--output", type=click.Path(path_type=Path), help="Write the map snapshot (.vxm) here (atomically).")
-@click.option("--backend", type=click.Choice(BACKEND_NAMES), default="octree", show_default=True,
-              help="Map backend (docs/backends.md).")
+@backend_options
 @scan_options
-@click.option("--param", "backend_params", multiple=True, metavar="KEY=VALUE",
-              help="Backend option, e.g. tau=4, buckets=65536, threads=2, order=morton (octocache); "
-                   "pool_blocks=4096, map_size=40 (tiny); n_lim=50000, d_inf=0.2, d_in=30, ttl=5, p_init=0.5 (hashmap).")
-@click.option("--pool-blocks", type=int, help="tiny: memory budget in blocks of 8 nodes (<= 4096: 16-bit nodes).")
-@click.option("--map-size", type=float, help="tiny: edge of the cubic map extent in metres (sets the depth).")
-@click.option("--schedule", multiple=True, metavar="SCAN:KEY=VALUE",
-              help="hashmap: change p_init, n_lim, d_in, d_inf, inf_range or ttl from scan SCAN on (repeatable).")
 @click.option("--share", type=click.Path(path_type=Path), help="hashmap: write newly occupied voxels (ring buffer) as a packet log.")
 @click.option("--ring", default=3, show_default=True, type=int, help="hashmap --share: frames per broadcast (k).")
 @click.option("--json", "as_json", is_flag=True, help="Print statistics and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def build(source, sample, output, backend, backend_params, pool_blocks, map_size, schedule, share, ring, as_json,
-          progress, **kw):
+def build(source, sample, output, share, ring, as_json, progress, **kw):
     """Build an occupancy map from SOURCE: a directory of PCD (or PLY + --poses) scans, a single
     PCD/PLY file, a ROS 2 .mcap file, or an OctoMap .graph file."""
     from voxtool.api import build_map
 
     options, params, sensor = scan_setup(kw)
-    extra = parse_params(backend_params)
-    if pool_blocks is not None:
-        extra["pool_blocks"] = pool_blocks
-    if map_size is not None:
-        extra["map_size"] = map_size
-    if schedule:
-        extra["schedule"] = parse_schedule(schedule)
+    backend, extra = backend_setup(kw)
     result = build_map(resolve_source(source, sample), options, params, sensor, backend, output, progress, extra,
                        share, ring)
     emit(result, as_json, summary_rows(result) + ([("written", str(output))] if output else []))
@@ -265,8 +282,7 @@ def cache_bench_cmd(source, sample, tau, buckets, order, threads, as_json, **kw)
 @click.option("--sample", is_flag=True, help="Use the shipped sample as SOURCE.")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Packet log to write (.mcap).")
 @click.option("--robot", default="r1", show_default=True, help="Robot id (1..16 bytes) stamped on every packet.")
-@click.option("--backend", type=click.Choice(BACKEND_NAMES), default="octree", show_default=True,
-              help="Map backend that produces the changes.")
+@backend_options
 @scan_options
 @click.option("--scheme", type=click.Choice(["hilbert", "nested", "racer", "occupied"]), default="hilbert", show_default=True)
 @click.option("--codec", type=click.Choice(["zstd", "zlib", "none"]), default="zstd", show_default=True)
@@ -278,7 +294,7 @@ def cache_bench_cmd(source, sample, tau, buckets, order, threads, as_json, **kw)
 @click.option("--json", "as_json", is_flag=True, help="Print the encoding report as JSON.")
 @click.option("--progress/--no-progress", default=None)
 @handle_errors
-def encode(source, sample, output, robot, backend, scheme, codec, max_changes, max_interval, ring, keyframe_every,
+def encode(source, sample, output, robot, scheme, codec, max_changes, max_interval, ring, keyframe_every,
            rate_hz, as_json, progress, **kw):
     """Map SOURCE and write the voxel state changes as packets to an MCAP packet log."""
     from voxtool.codec.encode import EncodeOptions, encode_stream
@@ -292,11 +308,14 @@ def encode(source, sample, output, robot, backend, scheme, codec, max_changes, m
 
     check_writable(output)
     options, params, sensor = scan_setup(kw)
+    backend, extra = backend_setup(kw)
     src = resolve_source(source, sample)
     opts = EncodeOptions(robot, scheme, codec, max_changes, max_interval, ring, keyframe_every, rate_hz)
+    mapper = make_backend(backend, params, sensor, **extra)
     stream = open_source(src, options)
-    info = {"source": str(src), "backend": backend, "map_params": params.to_dict(), "sensor_model": sensor.to_dict()}
-    result = encode_stream(stream, make_backend(backend, params, sensor), output, opts, info, progress)
+    info = {"source": str(src), "backend": backend, "backend_params": {k: v for k, v in extra.items() if k != "schedule"},
+            "map_params": params.to_dict(), "sensor_model": sensor.to_dict()}
+    result = encode_stream(stream, mapper, output, opts, info, progress)
     emit(result, as_json, [(k, str(v)) for k, v in result.items()])
 
 

@@ -12,7 +12,7 @@ from voxtool.codec.log import PacketLogWriter
 from voxtool.codec.packet import FREE, OCCUPIED, UNKNOWN, encode_packet, keyframe_packet
 from voxtool.errors import ParameterError
 from voxtool.keys import morton_decode
-from voxtool.maps.base import MapBackend
+from voxtool.maps.base import MapBackend, removed_voxels, update_codes
 from voxtool.sources import ScanStream
 
 
@@ -171,10 +171,19 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
                     rep.first_stamp_ns = stamp
                 t0 = time.perf_counter()
                 prepared = backend.prepare(scan)
-                codes = prepared.packed >> 1
+                codes = update_codes(backend, prepared)
                 before = voxel_states(backend.query(codes), thr)
                 backend.apply(prepared)
                 after = voxel_states(backend.query(codes), thr)
+                gone = removed_voxels(backend)
+                if gone is not None and gone[0].shape[0]:
+                    # voxels the map dropped that the scan did not update (voxel limit, TTL)
+                    extra = ~np.isin(gone[0], codes)
+                    codes = np.concatenate([codes, gone[0][extra]])
+                    before = np.concatenate([before, voxel_states(gone[1][extra], thr)])
+                    after = np.concatenate([after, voxel_states(backend.query(gone[0][extra]), thr)])
+                    order = np.argsort(codes)
+                    codes, before, after = codes[order], before[order], after[order]
                 rep.time_map_s += time.perf_counter() - t0
                 changed = before != after
                 if changed.any():  # running box of every voxel that ever changed: RACER's address space

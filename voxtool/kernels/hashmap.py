@@ -515,10 +515,13 @@ def _remove_from_map(r, offsets, offset_start, R, free, meta, tab, bkeys, bmask)
 
 
 @njit(cache=True)
-def manage(touched, n_touched, n_lim, oldest_allowed, offsets, offset_start, R, free, meta, tab, bkeys, bmask):
+def manage(touched, n_touched, n_lim, oldest_allowed, offsets, offset_start, R, free, meta, tab, bkeys, bmask,
+           out_codes, out_values):
     """Alg. 3: touched occupied voxels move to the back of the history, known-free ones leave the
     map, then the oldest leave until at most n_lim remain (and those older than the TTL).
-    Returns how many voxels were removed by the limit / TTL."""
+    Every voxel that leaves the occupancy map is listed in out_codes / out_values (its log-odds
+    before it left; room for n_touched + history size). Returns (removed by the limit / TTL,
+    listed)."""
     warm = np.int64(0)  # touch the history neighbours first (see _inflate_one)
     for i in range(n_touched):
         r = touched[i]
@@ -528,6 +531,7 @@ def manage(touched, n_touched, n_lim, oldest_allowed, offsets, offset_start, R, 
         if n >= 0:
             warm += R[n].state
     meta[M_WARM] = warm
+    listed = 0
     for i in range(n_touched):
         r = touched[i]
         if R[r].state < 0 or R[r].in_occ == 0:
@@ -537,12 +541,27 @@ def manage(touched, n_touched, n_lim, oldest_allowed, offsets, offset_start, R, 
         if R[r].state == 1:
             _push_back(r, R, meta)
         elif R[r].state == 0:
+            out_codes[listed] = R[r].code
+            out_values[listed] = R[r].l
+            listed += 1
             _remove_from_map(r, offsets, offset_start, R, free, meta, tab, bkeys, bmask)
     removed = 0
     while meta[M_HSIZE] > 0 and (meta[M_HSIZE] > n_lim or R[meta[M_HEAD]].last < oldest_allowed):
-        _remove_from_map(meta[M_HEAD], offsets, offset_start, R, free, meta, tab, bkeys, bmask)
+        r = meta[M_HEAD]
+        out_codes[listed] = R[r].code
+        out_values[listed] = R[r].l
+        listed += 1
+        _remove_from_map(r, offsets, offset_start, R, free, meta, tab, bkeys, bmask)
         removed += 1
-    return removed
+    return removed, listed
+
+
+@njit(cache=True)
+def lookup(tab, R, codes, out):
+    """Log-odds of each voxel the occupancy map holds, NaN elsewhere."""
+    for i in range(codes.shape[0]):
+        r = find(tab, codes[i])
+        out[i] = R[r].l if r >= 0 and R[r].in_occ == 1 else np.nan
 
 
 @njit(cache=True)

@@ -88,3 +88,17 @@ class MapBackend(Protocol):
 
     def extra_stats(self) -> dict[str, Any]:
         """Backend-specific figures for `stats` (pool usage, cache counters...)."""
+
+
+def update_codes(backend: MapBackend, prepared: PreparedScan) -> np.ndarray:
+    """Morton codes (sorted) whose state the next backend.apply(prepared) updates. A backend
+    that casts rays against its own map (the hash map) computes them here, at the last moment."""
+    own = getattr(backend, "update_codes", None)
+    return own(prepared) if own is not None else prepared.packed >> 1
+
+
+def removed_voxels(backend: MapBackend) -> tuple[np.ndarray, np.ndarray] | None:
+    """Voxels the last apply() dropped beyond its updated codes (the hash map's voxel limit and
+    time-to-live): Morton codes and log-odds before they left; None for backends that never drop."""
+    own = getattr(backend, "removed_voxels", None)
+    return own() if own is not None else None

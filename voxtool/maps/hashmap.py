@@ -55,6 +55,7 @@ class HashVoxelMap:
         self.meta[[K.M_HEAD, K.M_TAIL]] = -1
         self.bkeys, self.bmask = K.new_bricks(1024)
         self.scan_metrics: list[dict] = []
+        self.removed: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.float32))
         self._set_size = 1 << 14  # de-duplicating sets of the ray casting, one per half scan
         self._sets: dict[int, np.ndarray] = {}
         self.newly_occupied: np.ndarray = np.zeros(0, np.int64)
@@ -119,6 +120,7 @@ class HashVoxelMap:
             probe.integrate(Scan(np.array([[x, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
         # the table rebuilds run only when a table grows: load them now, not in a timed scan
         K.rehash(probe.tab, probe.rec, int(probe.meta[K.M_NEXT]))
+        probe.query(np.zeros(1, np.int64))
         K.brick_rehash(probe.bkeys, probe.bmask, *K.new_bricks(probe.bkeys.shape[0]))
 
     def prepare(self, scan: Scan) -> PreparedScan:
@@ -167,7 +169,9 @@ class HashVoxelMap:
         if n < SMALL_SCAN:
             parts = [part(0, 0, n)]
         else:
-            parts = list(RAY_POOL.map(lambda args: part(*args), ((0, 0, n // 2), (1, n // 2, n))))
+            # the second half on the pool, the first on this thread (one hand-off, not two)
+            second = RAY_POOL.submit(part, 1, n // 2, n)
+            parts = [part(0, 0, n // 2), second.result()]
         packed = np.sort(np.concatenate([p[0] for p in parts]))
         if len(parts) > 1 and packed.shape[0]:
             # a voxel both halves updated: keep its last entry, the hit if either half hit it
@@ -175,15 +179,27 @@ class HashVoxelMap:
             packed = packed[np.append(codes[1:] != codes[:-1], True)]
         return packed, sum(p[1] for p in parts)
 
+    def update_codes(self, prepared: PreparedScan) -> np.ndarray:
+        """Cast the prepared scan's rays against the map as it is now (once; apply() reuses the
+        result): the Morton codes whose state the next apply(prepared) updates."""
+        if prepared.scan is not None:
+            t0 = time.perf_counter()
+            prepared.packed, prepared.steps = self._trace(prepared.scan)
+            prepared.seconds += time.perf_counter() - t0
+            prepared.scan = None
+        return prepared.packed >> 1
+
+    def removed_voxels(self) -> tuple[np.ndarray, np.ndarray]:
+        """Voxels the last apply() took out of the occupancy map (known free, over n_lim, past
+        the TTL): Morton codes and their log-odds before they left."""
+        return self.removed
+
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         v, s = self.values, self.sensor
         stamp = prepared.stamp_ns
         origin = (prepared.origin if prepared.origin is not None else np.zeros(3, np.float32)).astype(np.float64)
-        t0 = time.perf_counter()
-        if prepared.scan is not None:
-            packed, steps = self._trace(prepared.scan)
-        else:
-            packed, steps = prepared.packed, prepared.steps
+        self.update_codes(prepared)
+        packed, steps = prepared.packed, prepared.steps
         t_cast = time.perf_counter()
         hit_bricks = packed[(packed & 1) == 1] >> 10  # Morton-sorted: a brick's voxels are adjacent
         n_hits = hit_bricks.shape[0]
@@ -205,14 +221,17 @@ class HashVoxelMap:
         t2 = time.perf_counter()
         n_lim = int(v["n_lim"]) if v["n_lim"] >= 0 else np.iinfo(np.int64).max
         oldest = stamp - int(v["ttl"] * 1e9) if v["ttl"] >= 0 else np.iinfo(np.int64).min
-        K.manage(touched, nt, n_lim, oldest, self.offsets, self.offset_start, self.rec, self.free, self.meta, self.tab,
-                 self.bkeys, self.bmask)
+        size = nt + int(self.meta[K.M_HSIZE])
+        gone_codes, gone_values = np.empty(size, np.int64), np.empty(size, np.float32)
+        _, n_gone = K.manage(touched, nt, n_lim, oldest, self.offsets, self.offset_start, self.rec, self.free,
+                             self.meta, self.tab, self.bkeys, self.bmask, gone_codes, gone_values)
+        self.removed = (gone_codes[:n_gone], gone_values[:n_gone])
         t3 = time.perf_counter()
         self.scan_metrics.append({"n_occ": int(self.meta[K.M_HSIZE]), "n_inf": int(self.meta[K.M_NINF]),
-                                  "t_tot_ms": 1e3 * (prepared.seconds + t3 - t0),
-                                  "t_occ_ms": 1e3 * (prepared.seconds + t1 - t0),
+                                  "t_tot_ms": 1e3 * (prepared.seconds + t3 - t_cast),
+                                  "t_occ_ms": 1e3 * (prepared.seconds + t1 - t_cast),
                                   "t_inf_ms": 1e3 * (t2 - t1), "t_m_ms": 1e3 * (t3 - t2), "memory_bytes": self.memory_bytes()})
-        return IntegrateTiming(raycast=prepared.seconds + t_cast - t0, update=t3 - t_cast,
+        return IntegrateTiming(raycast=prepared.seconds, update=t3 - t_cast,
                                voxel_updates=int(packed.shape[0]), ray_steps=steps, rays=prepared.rays,
                                merged_rays=prepared.merged_rays)
 
@@ -257,13 +276,9 @@ class HashVoxelMap:
         return Leaves(occ["code"].copy(), np.full(occ.shape[0], 16, np.uint8), occ["l"].copy())
 
     def query(self, codes: np.ndarray) -> np.ndarray:
-        lv = self.leaves()
-        idx = np.searchsorted(lv.codes, codes)
-        idx = np.clip(idx, 0, max(lv.codes.shape[0] - 1, 0))
-        out = np.full(codes.shape[0], np.nan, dtype=np.float32)
-        if lv.codes.shape[0]:
-            hit = lv.codes[idx] == codes
-            out[hit] = lv.values[idx[hit]]
+        """Log-odds of voxels of the occupancy map, NaN for every other voxel."""
+        out = np.empty(codes.shape[0], dtype=np.float32)
+        K.lookup(self.tab, self.rec, np.ascontiguousarray(codes, dtype=np.int64), out)
         return out
 
     def node_counts(self) -> tuple[int, int]:
