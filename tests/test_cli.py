@@ -311,3 +311,16 @@ def test_cli_backend_choices_match_the_registry():
     from voxtool.maps import BACKENDS
 
     assert tuple(sorted(BACKENDS)) == BACKEND_NAMES
+
+
+def test_encode_takes_the_build_backend_options(tmp_path):
+    log, out = tmp_path / "h.mcap", tmp_path / "h.vxm"
+    code, text = run("encode", "--sample", "-o", log, "--backend", "hashmap", "--param", "n_lim=3000", "--json",
+                     "--no-progress")
+    assert code == 0, text
+    assert json.loads(text)["changed_voxels"] > 3000
+    assert run("decode", log, "-o", out)[0] == 0
+    code, text = run("stats", out, "--json")
+    assert 0 < json.loads(text)["occupied_voxels"] <= 3000  # the limit reached the encoder's map
+    code, text = run("encode", "--sample", "-o", log, "--backend", "hashmap", "--param", "bogus=1")
+    assert code == 2 and "does not take" in text
