@@ -16,9 +16,9 @@ from voxtool.kernels.morton import compact16, morton3
 from voxtool.kernels.raycast import _coord_key
 
 RECORD = np.dtype({
-    "names": ["code", "last", "prev", "next", "l", "inf", "radius", "hits", "misses", "state", "in_occ"],
-    "formats": ["<i8", "<i8", "<i8", "<i8", "<f4", "<i4", "<i4", "<i4", "<i4", "i1", "u1"],
-    "offsets": [0, 8, 16, 24, 32, 36, 40, 44, 48, 52, 53],
+    "names": ["code", "last", "prev", "next", "l", "inf", "radius", "hits", "misses", "state", "in_occ", "ilist"],
+    "formats": ["<i8", "<i8", "<i8", "<i8", "<f4", "<i4", "<i4", "<i4", "<i4", "i1", "u1", "<i8"],
+    "offsets": [0, 8, 16, 24, 32, 36, 40, 44, 48, 52, 53, 56],
     "itemsize": 64,
 })
 EMPTY = -1
@@ -38,6 +38,14 @@ def new_records(n: int) -> np.ndarray:
     rec = raw[skip: skip + n * RECORD.itemsize].view(RECORD)
     rec["state"] = -1
     return rec
+
+
+def new_lists(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pool of inflation look-up tables (int32 record numbers, `size` of them) and its meta:
+    [0] first unused int, [1 + radius] head of the free blocks of that radius (-1: none)."""
+    imeta = np.full(66, -1, dtype=np.int64)
+    imeta[0] = 0
+    return np.zeros(size, dtype=np.int32), imeta
 
 
 def new_table(size: int) -> np.ndarray:
@@ -105,6 +113,7 @@ def _new_record(code, R, free, meta, tab):
     v.misses = 0
     v.state = 2
     v.in_occ = 0
+    v.ilist = -1
     meta[M_LIVE] += 1
     _insert(tab, code, r, meta)
     return r
@@ -341,7 +350,7 @@ def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_fr
     Returns (n touched, n occ-changed)."""
     nt = 0
     nc = 0
-    # touch the home slots first (independent loads overlap their cache misses, see _inflate_one)
+    # touch the home slots first (independent loads overlap their cache misses, see _inflate_sphere)
     mask = tab.shape[0] - 1
     warm = np.int64(0)
     for i in range(packed.shape[0]):
@@ -399,9 +408,24 @@ def _sphere_code(x, y, z, offsets, j):
     return morton3(nx, ny, nz)
 
 
+@njit(cache=True, inline="always")
+def _list_alloc(size, ipool, imeta, radius):
+    """A block of 1 + size ints of the look-up pool (room is reserved by the caller); freed
+    blocks of the same radius are reused first (imeta[1 + radius] heads their free list)."""
+    b = imeta[1 + radius]
+    if b >= 0:
+        imeta[1 + radius] = ipool[b]
+        return b
+    b = imeta[0]
+    imeta[0] += 1 + size
+    return b
+
+
 @njit(cache=True)
-def _inflate_one(r, sign, radius, offsets, offset_start, R, free, meta, tab):
-    """Add (sign=1) or remove (sign=-1) r's inflation over the sphere of `radius` voxels.
+def _inflate_sphere(r, radius, offsets, offset_start, R, free, meta, tab, ipool, imeta):
+    """Add 1 to the inflation count of every voxel within `radius` voxels of r (creating
+    inflated-only records as needed) and keep their record numbers: r's look-up table of what
+    it inflated (the paper's T_inf), so that removal needs no hash look-up.
 
     Memory latency bounds this loop (random table slots and records), so a first pass only
     touches the sphere's home slots: those loads do not depend on each other, their cache
@@ -418,30 +442,51 @@ def _inflate_one(r, sign, radius, offsets, offset_start, R, free, meta, tab):
         if c >= 0:
             warm += tab[_slot(c, mask), 1]
     meta[M_WARM] = warm  # keeps the touching loads from being optimised away
+    block = _list_alloc(hi - lo, ipool, imeta, radius)
+    n = 0
     for j in range(lo, hi):
         c = _sphere_code(x, y, z, offsets, j)
         if c < 0:
             continue
         t = find(tab, c)
-        if sign > 0:
-            if t < 0:
-                t = _new_record(c, R, free, meta, tab)
-            v = R[t]
-            if v.inf == 0:
-                meta[M_NINF] += 1
-            v.inf += 1
-        else:
-            v = R[t]
-            v.inf -= 1
-            if v.inf == 0:
-                meta[M_NINF] -= 1
-                if v.in_occ == 0:
-                    _drop_record(t, R, free, meta, tab)
+        if t < 0:
+            t = _new_record(c, R, free, meta, tab)
+        v = R[t]
+        if v.inf == 0:
+            meta[M_NINF] += 1
+        v.inf += 1
+        n += 1
+        ipool[block + n] = t
+    ipool[block] = n
+    R[r].ilist = block
+
+
+@njit(cache=True)
+def _deflate(r, R, free, meta, tab, ipool, imeta):
+    """Undo r's inflation through its look-up table; inflated-only voxels left uninflated go."""
+    block = R[r].ilist
+    n = ipool[block]
+    warm = np.int64(0)
+    for j in range(1, n + 1):  # touch the records first (see _inflate_sphere)
+        warm += R[ipool[block + j]].inf
+    meta[M_WARM] = warm
+    for j in range(1, n + 1):
+        t = ipool[block + j]
+        v = R[t]
+        v.inf -= 1
+        if v.inf == 0:
+            meta[M_NINF] -= 1
+            if v.in_occ == 0:
+                _drop_record(t, R, free, meta, tab)
+    radius = R[r].radius
+    ipool[block] = imeta[1 + radius]
+    imeta[1 + radius] = block
+    R[r].ilist = -1
 
 
 @njit(cache=True)
 def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, offsets, offset_start,
-            R, free, meta, tab):
+            R, free, meta, tab, ipool, imeta):
     """Alg. 2: occupancy-changed voxels within inf_range of the sensor (re)inflate: a voxel that
     became occupied inflates the sphere of the current radius (remembered per voxel), one that
     stopped being occupied removes exactly the sphere it added. Returns voxels processed."""
@@ -460,10 +505,10 @@ def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, o
         radius = R[r].radius
         if state == 1 and radius < 0:
             R[r].radius = radius_now
-            _inflate_one(r, 1, radius_now, offsets, offset_start, R, free, meta, tab)
+            _inflate_sphere(r, radius_now, offsets, offset_start, R, free, meta, tab, ipool, imeta)
             done += 1
         elif state != 1 and radius >= 0:
-            _inflate_one(r, -1, radius, offsets, offset_start, R, free, meta, tab)
+            _deflate(r, R, free, meta, tab, ipool, imeta)
             R[r].radius = -1
             done += 1
     return done
@@ -499,10 +544,10 @@ def _push_back(r, R, meta):
 
 
 @njit(cache=True)
-def _remove_from_map(r, offsets, offset_start, R, free, meta, tab, bkeys, bmask):
+def _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta):
     """Take r out of the occupancy map; its inflation goes with it (exact, whatever the range)."""
     if R[r].radius >= 0:
-        _inflate_one(r, -1, R[r].radius, offsets, offset_start, R, free, meta, tab)
+        _deflate(r, R, free, meta, tab, ipool, imeta)
         R[r].radius = -1
     if R[r].prev != NOT_IN_HISTORY:
         _unlink(r, R, meta)
@@ -515,14 +560,14 @@ def _remove_from_map(r, offsets, offset_start, R, free, meta, tab, bkeys, bmask)
 
 
 @njit(cache=True)
-def manage(touched, n_touched, n_lim, oldest_allowed, offsets, offset_start, R, free, meta, tab, bkeys, bmask,
+def manage(touched, n_touched, n_lim, oldest_allowed, R, free, meta, tab, bkeys, bmask, ipool, imeta,
            out_codes, out_values):
     """Alg. 3: touched occupied voxels move to the back of the history, known-free ones leave the
     map, then the oldest leave until at most n_lim remain (and those older than the TTL).
     Every voxel that leaves the occupancy map is listed in out_codes / out_values (its log-odds
     before it left; room for n_touched + history size). Returns (removed by the limit / TTL,
     listed)."""
-    warm = np.int64(0)  # touch the history neighbours first (see _inflate_one)
+    warm = np.int64(0)  # touch the history neighbours first (see _inflate_sphere)
     for i in range(n_touched):
         r = touched[i]
         p, n = R[r].prev, R[r].next
@@ -544,14 +589,14 @@ def manage(touched, n_touched, n_lim, oldest_allowed, offsets, offset_start, R, 
             out_codes[listed] = R[r].code
             out_values[listed] = R[r].l
             listed += 1
-            _remove_from_map(r, offsets, offset_start, R, free, meta, tab, bkeys, bmask)
+            _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta)
     removed = 0
     while meta[M_HSIZE] > 0 and (meta[M_HSIZE] > n_lim or R[meta[M_HEAD]].last < oldest_allowed):
         r = meta[M_HEAD]
         out_codes[listed] = R[r].code
         out_values[listed] = R[r].l
         listed += 1
-        _remove_from_map(r, offsets, offset_start, R, free, meta, tab, bkeys, bmask)
+        _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta)
         removed += 1
     return removed, listed
 
@@ -593,7 +638,7 @@ def load_records(codes, values, l_occ, l_free, R, free, meta, tab, bkeys, bmask)
 
 
 @njit(cache=True)
-def restore(radius, last, hits, misses, history, offsets, offset_start, R, free, meta, tab):
+def restore(radius, last, hits, misses, history, offsets, offset_start, R, free, meta, tab, ipool, imeta):
     """After load_records (same order as the stored voxels): per-voxel radius, stamps and counts,
     the inflation map re-derived from the radii, and the history list in its stored order."""
     n = radius.shape[0]
@@ -603,6 +648,6 @@ def restore(radius, last, hits, misses, history, offsets, offset_start, R, free,
         R[r].last = last[r]
         if radius[r] >= 0:
             R[r].radius = radius[r]
-            _inflate_one(r, 1, radius[r], offsets, offset_start, R, free, meta, tab)
+            _inflate_sphere(r, radius[r], offsets, offset_start, R, free, meta, tab, ipool, imeta)
     for i in range(history.shape[0]):
         _push_back(history[i], R, meta)

@@ -54,6 +54,7 @@ class HashVoxelMap:
         self.meta = np.zeros(K.META_FIELDS, dtype=np.int64)
         self.meta[[K.M_HEAD, K.M_TAIL]] = -1
         self.bkeys, self.bmask = K.new_bricks(1024)
+        self.ipool, self.imeta = K.new_lists(1 << 16)
         self.scan_metrics: list[dict] = []
         self.removed: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.float32))
         self._set_size = 1 << 14  # de-duplicating sets of the ray casting, one per half scan
@@ -82,8 +83,14 @@ class HashVoxelMap:
                 self.set_params(**{k: value})
 
     # -- storage -------------------------------------------------------------------------------
-    def _reserve(self, new_records: int, new_bricks: int = 0) -> None:
-        """Room for new_records more records and new_bricks more bricks of the brick table."""
+    def _reserve(self, new_records: int, new_bricks: int = 0, list_ints: int = 0) -> None:
+        """Room for new_records more records, new_bricks more bricks of the brick table and
+        list_ints more ints of inflation look-up tables."""
+        need = int(self.imeta[0]) + list_ints
+        if need > self.ipool.shape[0]:
+            grown = np.zeros(max(need, 2 * self.ipool.shape[0]), dtype=np.int32)
+            grown[: self.ipool.shape[0]] = self.ipool
+            self.ipool = grown
         need = int(self.meta[K.M_NEXT]) + new_records
         cap = self.rec.shape[0]
         if need > cap:
@@ -215,16 +222,17 @@ class HashVoxelMap:
         self.newly_occupied = self.rec["code"][ch[self.rec["state"][ch] == 1]]
         t1 = time.perf_counter()
         sphere = int(self.offset_start[self.radius_vox + 1] - self.offset_start[self.radius_vox])
-        self._reserve(nc * sphere)
+        self._reserve(nc * sphere, 0, nc * (1 + sphere))
         K.inflate(changed, nc, origin[0], origin[1], origin[2], v["inf_range"], self.params.resolution,
-                  self.radius_vox, self.offsets, self.offset_start, self.rec, self.free, self.meta, self.tab)
+                  self.radius_vox, self.offsets, self.offset_start, self.rec, self.free, self.meta, self.tab,
+                  self.ipool, self.imeta)
         t2 = time.perf_counter()
         n_lim = int(v["n_lim"]) if v["n_lim"] >= 0 else np.iinfo(np.int64).max
         oldest = stamp - int(v["ttl"] * 1e9) if v["ttl"] >= 0 else np.iinfo(np.int64).min
         size = nt + int(self.meta[K.M_HSIZE])
         gone_codes, gone_values = np.empty(size, np.int64), np.empty(size, np.float32)
-        _, n_gone = K.manage(touched, nt, n_lim, oldest, self.offsets, self.offset_start, self.rec, self.free,
-                             self.meta, self.tab, self.bkeys, self.bmask, gone_codes, gone_values)
+        _, n_gone = K.manage(touched, nt, n_lim, oldest, self.rec, self.free, self.meta, self.tab, self.bkeys,
+                             self.bmask, self.ipool, self.imeta, gone_codes, gone_values)
         self.removed = (gone_codes[:n_gone], gone_values[:n_gone])
         t3 = time.perf_counter()
         self.scan_metrics.append({"n_occ": int(self.meta[K.M_HSIZE]), "n_inf": int(self.meta[K.M_NINF]),
@@ -285,7 +293,8 @@ class HashVoxelMap:
         return int(self.leaves().codes.shape[0]), 0
 
     def memory_bytes(self) -> int:
-        return int(self.rec.nbytes + self.free.nbytes + self.tab.nbytes + self.bkeys.nbytes + self.bmask.nbytes)
+        return int(self.rec.nbytes + self.free.nbytes + self.tab.nbytes + self.bkeys.nbytes + self.bmask.nbytes
+                   + self.ipool.nbytes)
 
     def _history(self) -> np.ndarray:
         """Record indices of the history list, oldest first."""
@@ -328,11 +337,13 @@ class HashVoxelMap:
         if max_r + 1 >= self.offset_start.shape[0]:
             self.offsets, self.offset_start = sphere_offsets(max_r)
         sphere = int(self.offset_start[max_r + 1] - self.offset_start[max_r])
-        self._reserve(n + int((radius >= 0).sum()) * sphere, int(np.unique(codes >> 9).shape[0]))
+        inflating = int((radius >= 0).sum())
+        self._reserve(n + inflating * sphere, int(np.unique(codes >> 9).shape[0]), inflating * (1 + sphere))
         K.load_records(codes, values, np.float32(self.sensor.threshold_log), np.float32(logodds(self.p_free)),
                        self.rec, self.free, self.meta, self.tab, self.bkeys, self.bmask)
         K.restore(radius.astype(np.int32), last.astype(np.int64), hits.astype(np.int32), misses.astype(np.int32),
-                  history.astype(np.int64), self.offsets, self.offset_start, self.rec, self.free, self.meta, self.tab)
+                  history.astype(np.int64), self.offsets, self.offset_start, self.rec, self.free, self.meta, self.tab,
+                  self.ipool, self.imeta)
 
     def extra_meta(self) -> dict[str, Any]:
         return {k: self.values[k] for k in ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")} | {"p_free": self.p_free}
