@@ -32,12 +32,12 @@ _MULT = np.int64(-7046029254386353131)
 
 
 def new_records(n: int) -> np.ndarray:
-    """n unused records, the array aligned to 64 bytes so that each record is one cache line."""
-    raw = np.zeros(n * RECORD.itemsize + 64, dtype=np.uint8)
+    """Room for n records, aligned to 64 bytes so that each record is one cache line. Records
+    from meta[M_NEXT] on are never read before _new_record fills them, so none is initialised
+    here (growing a large map stays cheap)."""
+    raw = np.empty(n * RECORD.itemsize + 64, dtype=np.uint8)
     skip = (-raw.ctypes.data) % 64
-    rec = raw[skip: skip + n * RECORD.itemsize].view(RECORD)
-    rec["state"] = -1
-    return rec
+    return raw[skip: skip + n * RECORD.itemsize].view(RECORD)
 
 
 def new_lists(size: int) -> tuple[np.ndarray, np.ndarray]:
