@@ -80,3 +80,18 @@ def test_packet_golden_vector_both_directions(vector):
 
 def test_packet_vectors_exist():
     assert len(PACKETS) == 5
+
+
+def test_version_1_packets_still_decode():
+    """Logs written before the varint `occupied` payload (version 2) stay readable."""
+    from voxtool.codec.packet import decode_packet, occupied_frames
+
+    vector = Path(__file__).resolve().parents[1] / "formats" / "vectors" / "v1" / "packet_occupied.bin"
+    blob = vector.read_bytes()
+    assert blob[4] == 1
+    spec = json.loads(vector.with_suffix(".json").read_text())
+    p = decode_packet(blob)
+    assert sorted([*map(int, k), int(s)] for k, s in zip(p.keys, p.states)) == spec["decoded"]["voxels"]
+    frames = occupied_frames(blob)
+    assert [f for f, _ in frames] == [f for f, _ in spec["encode"]["frames"]]
+    assert [k.tolist() for _, k in frames] == [k for _, k in spec["encode"]["frames"]]

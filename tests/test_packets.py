@@ -257,3 +257,28 @@ def test_hash_map_logs_decode_to_the_hash_map(tmp_path, n_lim):
     assert np.array_equal(fused.codes[known], codes) and np.array_equal(fused.states[known], states)
     if n_lim >= 0:
         assert len(backend.occupied_codes()) <= n_lim < report["changed_voxels"]
+
+
+@given(st.lists(st.integers(0, (1 << 48) - 1), max_size=300, unique=True))
+def test_varint_deltas_round_trip(values):
+    from voxtool.codec.varint import decode_deltas, encode_deltas
+
+    codes = np.sort(np.array(values, dtype=np.int64))
+    data = b"\x01\x02" + encode_deltas(codes) + b"\xff"  # decoding starts and stops mid-buffer
+    back, end = decode_deltas(data, 2, codes.shape[0], "test")
+    assert np.array_equal(back, codes) and end == len(data) - 1
+
+
+def test_varint_deltas_refuse_bad_input():
+    from voxtool.codec.varint import decode_deltas, encode_deltas
+    from voxtool.errors import FormatError
+
+    good = encode_deltas(np.array([5, 300, 70000], np.int64))
+    with pytest.raises(FormatError, match="end early"):
+        decode_deltas(good[:-1], 0, 3, "t")  # truncated
+    with pytest.raises(FormatError, match="repeat"):
+        decode_deltas(bytes([5, 0]), 0, 2, "t")  # a zero step repeats a voxel
+    with pytest.raises(FormatError, match="longer than"):
+        decode_deltas(bytes([0x80] * 7 + [1, 1]), 0, 2, "t")  # an 8-byte varint
+    with pytest.raises(FormatError, match="key range"):
+        decode_deltas(bytes([0xFF] * 6 + [0x7F]), 0, 1, "t")  # 2^49 - 1

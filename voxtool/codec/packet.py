@@ -5,7 +5,8 @@ A packet = 96-byte little-endian header + payload (compressed per `codec`). Sche
                     3 unchanged) in Hilbert or x-fastest nested order, 4 cells per byte
   racer             changed voxels as addresses (linear index in the map box, minimum whole byte
                     width) + 2-bit states
-  occupied          newly occupied voxels of the last k frames (ring buffer), keys as 3 x uint16
+  occupied          newly occupied voxels of the last k frames (ring buffer), as varints of the
+                    differences of their sorted Morton codes (version 1: keys as 3 x uint16)
 Kind 0 is a delta (unchanged cells allowed), kind 1 a full-state keyframe of a box (no unchanged).
 """
 
@@ -18,10 +19,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import zstandard
 
+from voxtool.codec.varint import decode_deltas, encode_deltas
 from voxtool.errors import FormatError
+from voxtool.keys import morton_decode, morton_encode
 
 MAGIC = b"VXPK"
-VERSION = 1
+VERSION = 2  # 2: `occupied` frames as varint Morton deltas; version-1 packets still decode
+READABLE_VERSIONS = (1, 2)
 SCHEMES = ("hilbert", "nested", "racer", "occupied")
 CODECS = ("none", "zstd", "zlib")
 KIND_DELTA, KIND_KEYFRAME = 0, 1
@@ -132,8 +136,8 @@ def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, 
         frames = frames or []
         parts = []
         for fseq, fkeys in frames:
-            fk = np.asarray(fkeys, dtype="<u2").reshape(-1, 3)
-            parts.append(struct.pack("<II", fseq, fk.shape[0]) + fk.tobytes())
+            codes = np.unique(morton_encode(np.asarray(fkeys, dtype=np.int64).reshape(-1, 3)))
+            parts.append(struct.pack("<II", fseq, codes.shape[0]) + encode_deltas(codes))
         raw = b"".join(parts)
         lo, dims, count = np.zeros(3, np.int64), np.zeros(3, np.int64), len(frames)
     else:
@@ -175,8 +179,6 @@ def keyframe_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str
                     codes: np.ndarray, states: np.ndarray) -> bytes:
     """Full-state keyframe of known voxels (Morton codes, FREE/OCCUPIED states): every cell of
     their bounding box, unknown where no voxel is given, no 'unchanged'."""
-    from voxtool.keys import morton_decode
-
     keys = morton_decode(codes).astype(np.int64)
     lo = keys.min(axis=0) if keys.shape[0] else np.zeros(3, np.int64)
     dims = (keys.max(axis=0) - lo + 1) if keys.shape[0] else np.ones(3, np.int64)
@@ -197,8 +199,9 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
     count, raw_size, stored_size, crc = f[18:22]
     if magic != MAGIC:
         raise FormatError(f"{where}: not a voxtool packet (bad magic)")
-    if version != VERSION:
-        raise FormatError(f"{where}: packet version {version} is not supported (this voxtool reads {VERSION})")
+    if version not in READABLE_VERSIONS:
+        raise FormatError(f"{where}: packet version {version} is not supported (this voxtool reads "
+                          f"{', '.join(map(str, READABLE_VERSIONS))})")
     if scheme_i >= len(SCHEMES) or codec_i >= len(CODECS) or kind not in (KIND_DELTA, KIND_KEYFRAME):
         raise FormatError(f"{where}: unknown scheme {scheme_i}, codec {codec_i} or kind {kind}")
     if HEADER.size + stored_size != len(blob):
@@ -248,19 +251,8 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
             raise FormatError(f"{where}: RACER entry with state 'unchanged'")
         keys = np.stack([addr % dims_a[0], (addr // dims_a[0]) % dims_a[1], addr // (dims_a[0] * dims_a[1])], axis=1) + lo_a
     else:
-        keys_list, pos = [], 0
-        for _ in range(count):
-            if pos + 8 > len(raw):
-                raise FormatError(f"{where}: occupied frame list truncated")
-            _fseq, n = struct.unpack_from("<II", raw, pos)
-            pos += 8
-            if pos + 6 * n > len(raw):
-                raise FormatError(f"{where}: occupied frame declares {n} voxels beyond the payload")
-            keys_list.append(np.frombuffer(raw, dtype="<u2", count=3 * n, offset=pos).reshape(n, 3).astype(np.int64))
-            pos += 6 * n
-        if pos != len(raw):
-            raise FormatError(f"{where}: {len(raw) - pos} trailing payload bytes")
-        keys = np.concatenate(keys_list) if keys_list else np.zeros((0, 3), np.int64)
+        frames = _read_frames(raw, count, version, where)
+        keys = np.concatenate([k for _, k in frames]) if frames else np.zeros((0, 3), np.int64)
         states = np.full(keys.shape[0], OCCUPIED, dtype=np.uint8)
     if np.any(states > UNKNOWN):
         raise FormatError(f"{where}: invalid voxel state")
@@ -268,14 +260,33 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
                   tuple(lo), tuple(dims), count, raw_size, stored_size, keys.astype(np.uint16), states)
 
 
-def occupied_frames(blob: bytes) -> list[tuple[int, np.ndarray]]:
-    """(frame seq, keys) of an `occupied` packet's ring buffer, for receivers that dedupe frames."""
-    p = HEADER.unpack_from(blob, 0)
-    raw = _decompress(blob[HEADER.size:], CODECS[p[4]], p[19], "packet")
-    out, pos = [], 0
-    for _ in range(p[18]):
+def _read_frames(raw: bytes, count: int, version: int, where: str) -> list[tuple[int, np.ndarray]]:
+    """The (frame seq, int64 keys) of an `occupied` payload: version 1 stores 3 x uint16 keys,
+    version 2 varint Morton deltas."""
+    frames, pos = [], 0
+    for _ in range(count):
+        if pos + 8 > len(raw):
+            raise FormatError(f"{where}: occupied frame list truncated")
         fseq, n = struct.unpack_from("<II", raw, pos)
         pos += 8
-        out.append((fseq, np.frombuffer(raw, dtype="<u2", count=3 * n, offset=pos).reshape(n, 3)))
-        pos += 6 * n
-    return out
+        if version == 1:
+            if pos + 6 * n > len(raw):
+                raise FormatError(f"{where}: occupied frame declares {n} voxels beyond the payload")
+            keys = np.frombuffer(raw, dtype="<u2", count=3 * n, offset=pos).reshape(n, 3).astype(np.int64)
+            pos += 6 * n
+        else:
+            if n > len(raw) - pos:  # every voxel takes at least one byte
+                raise FormatError(f"{where}: occupied frame declares {n} voxels beyond the payload")
+            codes, pos = decode_deltas(raw, pos, n, where)
+            keys = morton_decode(codes).astype(np.int64)
+        frames.append((fseq, keys))
+    if pos != len(raw):
+        raise FormatError(f"{where}: {len(raw) - pos} trailing payload bytes")
+    return frames
+
+
+def occupied_frames(blob: bytes, where: str = "packet") -> list[tuple[int, np.ndarray]]:
+    """(frame seq, keys) of an `occupied` packet's ring buffer, for receivers that dedupe frames."""
+    p = decode_packet(blob, where)  # checks everything first
+    raw = _decompress(blob[HEADER.size:], p.codec, p.raw_size, where)
+    return _read_frames(raw, p.count, blob[4], where)
