@@ -4,13 +4,20 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import sys
 from pathlib import Path
 
-import click
+# Before numpy loads: voxtool's matrix products are small (a scan's points times a 3x3
+# rotation); threaded BLAS only spins on them and takes the cores the ray casting runs on (seen
+# in perf as blas_thread_server). A default for the command line only; a user's setting wins.
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from voxtool import __version__
-from voxtool.errors import VoxtoolError
+import click  # noqa: E402
+
+from voxtool import __version__  # noqa: E402
+from voxtool.errors import VoxtoolError  # noqa: E402
 
 SAMPLE_DIR = Path(__file__).parent / "data" / "sample"
 # voxtool.maps.BACKENDS imports the compiled kernels; the CLI keeps its names here so that
