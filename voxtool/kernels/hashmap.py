@@ -13,7 +13,7 @@ import numpy as np
 from numba import njit
 
 from voxtool.kernels.morton import compact16, morton3
-from voxtool.kernels.raycast import _coord_key, _ray_end, _ray_start
+from voxtool.kernels.raycast import _coord_key
 
 RECORD = np.dtype({
     "names": ["code", "last", "prev", "next", "l", "inf", "radius", "hits", "misses", "state", "in_occ", "ilist"],
@@ -247,37 +247,56 @@ def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slo
     okx = _coord_key(ox, res_factor)
     oky = _coord_key(oy, res_factor)
     okz = _coord_key(oz, res_factor)
-    o64 = np.empty(3, dtype=np.float64)
-    o64[0], o64[1], o64[2] = np.float64(ox), np.float64(oy), np.float64(oz)
+    o64x, o64y, o64z = np.float64(ox), np.float64(oy), np.float64(oz)
+    half = np.float64(np.float32(resolution * 0.5))
     mr32 = np.float32(max_range)
-    end_key = np.empty(3, dtype=np.int64)
-    key = np.empty(3, dtype=np.int64)
-    direction = np.empty(3, dtype=np.float32)
-    step = np.empty(3, dtype=np.int64)
-    t_max = np.empty(3, dtype=np.float64)
-    t_delta = np.empty(3, dtype=np.float64)
     limit = seen.shape[0] // 2
     n = 0
     steps = 0
+    big = 1.7976931348623157e308
     for i in range(points.shape[0]):
         if n >= limit:
             break
-        # the shared OctoMap-exact ray set-up (kernels.raycast); the stepping loop below is
-        # written out with scalars, as in scan_bricks, because it is the hot part
-        dx, dy, dz, cut = _ray_end(points, i, ox, oy, oz, max_range, mr32, res_factor, end_key)
-        ekx, eky, ekz = end_key[0], end_key[1], end_key[2]
+        ex, ey, ez = points[i, 0], points[i, 1], points[i, 2]
+        dx, dy, dz = ex - ox, ey - oy, ez - oz
+        cut = False
+        if max_range >= 0.0:
+            norm = np.sqrt(np.float64(dx * dx + dy * dy + dz * dz))
+            if norm > max_range:
+                # OctoMap computeUpdate: the ray ends at max_range and marks no hit
+                cut = True
+                ln = np.float32(norm)
+                ex, ey, ez = ox + (dx / ln) * mr32, oy + (dy / ln) * mr32, oz + (dz / ln) * mr32
+                dx, dy, dz = ex - ox, ey - oy, ez - oz
+        ekx = _coord_key(ex, res_factor)
+        eky = _coord_key(ey, res_factor)
+        ekz = _coord_key(ez, res_factor)
         if not cut:
             n = _set_add(seen, slots, n, (morton3(ekx, eky, ekz) << 1) | 1)
         if ekx == okx and eky == oky and ekz == okz:
             continue
-        length64 = _ray_start(dx, dy, dz, okx, oky, okz, o64, resolution, key, direction, step, t_max, t_delta)
-        sx, sy, sz = step[0], step[1], step[2]
-        tx, ty, tz = t_max[0], t_max[1], t_max[2]
-        ux, uy, uz = t_delta[0], t_delta[1], t_delta[2]
+        # OctoMap computeRayKeys initialisation (float32 direction, float64 tMax / tDelta)
+        length = np.float32(np.sqrt(np.float64(dx * dx + dy * dy + dz * dz)))
+        fx, fy, fz = dx / length, dy / length, dz / length
+        sx = 1 if fx > 0.0 else (-1 if fx < 0.0 else 0)
+        sy = 1 if fy > 0.0 else (-1 if fy < 0.0 else 0)
+        sz = 1 if fz > 0.0 else (-1 if fz < 0.0 else 0)
+        tx = ty = tz = big
+        ux = uy = uz = big
+        if sx != 0:
+            tx = ((np.float64(okx - 32768) + 0.5) * resolution + sx * half - o64x) / np.float64(fx)
+            ux = resolution / abs(np.float64(fx))
+        if sy != 0:
+            ty = ((np.float64(oky - 32768) + 0.5) * resolution + sy * half - o64y) / np.float64(fy)
+            uy = resolution / abs(np.float64(fy))
+        if sz != 0:
+            tz = ((np.float64(okz - 32768) + 0.5) * resolution + sz * half - o64z) / np.float64(fz)
+            uz = resolution / abs(np.float64(fz))
         # the key that starts a new brick when stepping along each axis
         bx = 0 if sx > 0 else 7
         by = 0 if sy > 0 else 7
         bz = 0 if sz > 0 else 7
+        length64 = np.float64(length)
         kx, ky, kz = okx, oky, okz
         # every step moves one axis one voxel towards the end key, so the ray can reach it only
         # after exactly this many steps (an axis that overshoots never comes back)
