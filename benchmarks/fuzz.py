@@ -15,10 +15,12 @@ import argparse
 import io
 import json
 import resource
+import struct
 import sys
 import tempfile
 import time
 import traceback
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -66,13 +68,14 @@ def seeds() -> dict[str, list[bytes]]:
             log.metadata("r", {"first_stamp_ns": 0, "last_stamp_ns": 100})
         logs = [tmp.read_bytes()]
     bt = [bt_bytes(m.leaves(), 0.2, 0.0)]
-    return {"pcd": pcd, "ply": ply, "snapshot": snap, "packet": packets, "packet_log": logs, "bt": bt}
+    return {"pcd": pcd, "ply": ply, "snapshot": snap, "packet": packets, "packet_resealed": packets,
+            "packet_log": logs, "bt": bt}
 
 
 def targets():
     from voxtool.codec.fusion import fuse
     from voxtool.codec.log import read_log
-    from voxtool.codec.packet import decode_packet
+    from voxtool.codec.packet import HEADER, decode_packet, occupied_frames
     from voxtool.io.bt import parse_bt_bytes
     from voxtool.io.snapshot import parse_snapshot
     from voxtool.sources.pcd import parse_pcd
@@ -87,8 +90,20 @@ def targets():
         p = decode_packet(blob)
         fuse([], packets=iter([p]))
 
-    return {"pcd": parse_pcd, "ply": parse_ply, "snapshot": parse_snapshot, "packet": packet, "packet_log": log,
-            "bt": parse_bt_bytes}
+    def resealed(blob):
+        """The mutated packet with its stored size and CRC made right again, so that mutations
+        reach the size checks, the decompressors and the payload parsers behind the CRC."""
+        if len(blob) >= HEADER.size:
+            b = bytearray(blob)
+            struct.pack_into("<I", b, 88, len(b) - HEADER.size)
+            struct.pack_into("<I", b, 92, zlib.crc32(bytes(b[HEADER.size:]), zlib.crc32(bytes(b[: HEADER.size - 4]))))
+            blob = bytes(b)
+        packet(blob)
+        if len(blob) > 4 and blob[6] == 3:  # occupied: the receiver's frame reader too
+            occupied_frames(blob)
+
+    return {"pcd": parse_pcd, "ply": parse_ply, "snapshot": parse_snapshot, "packet": packet,
+            "packet_resealed": resealed, "packet_log": log, "bt": parse_bt_bytes}
 
 
 BOUNDARY = [0x00, 0x01, 0x7F, 0x80, 0xFF]

@@ -95,3 +95,24 @@ def test_version_1_packets_still_decode():
     frames = occupied_frames(blob)
     assert [f for f, _ in frames] == [f for f, _ in spec["encode"]["frames"]]
     assert [k.tolist() for _, k in frames] == [k for _, k in spec["encode"]["frames"]]
+
+
+def test_zstd_frames_declaring_another_size_are_refused_before_allocating():
+    import struct
+
+    import zstandard
+
+    from voxtool.compression import zstd_exact
+    from voxtool.errors import FormatError
+
+    frame = zstandard.ZstdCompressor().compress(b"x" * 10)
+    assert zstd_exact(frame, 10, "t") == b"x" * 10
+    with pytest.raises(FormatError, match="declares 10 bytes"):
+        zstd_exact(frame, 5, "t")
+    # a frame header claiming 2^62 bytes (found by benchmarks/fuzz.py behind a valid CRC): the
+    # decompressor would try to allocate that much
+    hostile = b"\x28\xb5\x2f\xfd" + bytes([0xE0]) + struct.pack("<Q", 1 << 62) + b"\x01\x00\x00"
+    with pytest.raises(FormatError):
+        zstd_exact(hostile, 7, "t")
+    with pytest.raises(FormatError):
+        zstd_exact(b"not zstd", 7, "t")

@@ -282,3 +282,19 @@ def test_varint_deltas_refuse_bad_input():
         decode_deltas(bytes([0x80] * 7 + [1, 1]), 0, 2, "t")  # an 8-byte varint
     with pytest.raises(FormatError, match="key range"):
         decode_deltas(bytes([0xFF] * 6 + [0x7F]), 0, 1, "t")  # 2^49 - 1
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=200), st.integers(0, 5))
+def test_occupied_payload_garbage_is_refused_cleanly(raw, count):
+    """Behind the CRC: any payload bytes decode or raise FormatError, nothing else."""
+    from voxtool.codec.packet import _read_frames
+    from voxtool.errors import FormatError
+
+    for version in (1, 2):
+        try:
+            frames = _read_frames(raw, count, version, "fuzz")
+        except FormatError:
+            continue
+        for _, keys in frames:
+            assert keys.ndim == 2 and keys.shape[1] == 3 and np.all((keys >= 0) & (keys < 65536))

@@ -168,6 +168,9 @@ box_order.cache_clear = _cached_order.cache_clear  # type: ignore[attr-defined]
 def _order(dx: int, dy: int, dz: int) -> np.ndarray:
     octant, nxt = state_tables()
     out = np.empty(dx * dy * dz, dtype=np.int64)
+    if out.shape[0] == 0:  # a box without cells (an empty packet, or a hostile header)
+        out.setflags(write=False)
+        return out
     n = _walk(dx, dy, dz, bits_for((dx, dy, dz)), octant, nxt, out)
     assert n == out.shape[0]
     out.setflags(write=False)

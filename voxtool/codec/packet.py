@@ -20,6 +20,7 @@ import numpy as np
 import zstandard
 
 from voxtool.codec.varint import decode_deltas, encode_deltas
+from voxtool.compression import zstd_exact
 from voxtool.errors import FormatError
 from voxtool.keys import morton_decode, morton_encode
 
@@ -90,7 +91,7 @@ def _compress(raw: bytes, codec: str) -> bytes:
 def _decompress(stored: bytes, codec: str, raw_size: int, where: str) -> bytes:
     try:
         if codec == "zstd":
-            data = zstandard.ZstdDecompressor().decompress(stored, max_output_size=raw_size) if raw_size else b""
+            data = zstd_exact(stored, raw_size, f"{where}: payload")
         elif codec == "zlib":
             d = zlib.decompressobj()
             data = d.decompress(stored, raw_size)

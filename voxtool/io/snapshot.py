@@ -22,6 +22,7 @@ import numpy as np
 import zstandard
 
 from voxtool.atomic import atomic_writer
+from voxtool.compression import zstd_exact
 from voxtool.errors import FormatError
 
 MAGIC = b"\x89VXM\r\n\x1a\n"
@@ -99,7 +100,6 @@ def parse_snapshot(blob: bytes, where: str = "snapshot") -> Snapshot:
     payload_start = _FIXED.size + head_len
     payload_end = len(blob) - 4
     arrays: dict[str, np.ndarray] = {}
-    decompressor = zstandard.ZstdDecompressor()
     for entry in header["arrays"]:
         try:
             name, dtype_name, shape = str(entry["name"]), str(entry["dtype"]), [int(s) for s in entry["shape"]]
@@ -120,13 +120,7 @@ def parse_snapshot(blob: bytes, where: str = "snapshot") -> Snapshot:
         chunk = blob[lo : lo + stored]
         if zlib.crc32(chunk) != want_crc:
             raise FormatError(f"{where}: array '{name}' CRC mismatch")
-        try:
-            if codec == "raw":
-                data = bytes(chunk)
-            else:
-                data = decompressor.decompress(chunk, max_output_size=raw) if raw else b""
-        except zstandard.ZstdError as err:
-            raise FormatError(f"{where}: array '{name}' does not decompress ({err})") from err
+        data = bytes(chunk) if codec == "raw" else zstd_exact(chunk, raw, f"{where}: array '{name}'")
         if len(data) != raw:
             raise FormatError(f"{where}: array '{name}' decompressed to {len(data)} bytes, declared {raw}")
         arrays[name] = np.frombuffer(data, dtype=DTYPES[dtype_name]).reshape(shape).copy()
