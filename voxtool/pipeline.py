@@ -103,6 +103,10 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
             scan, prepared, read_s = future.result()
             if scan is None:
                 break
+            if hasattr(backend, "update_codes"):
+                # a backend that casts rays against its own map (the hash map) does so now, on
+                # both cores, before the next scan's reading takes one of them
+                backend.update_codes(prepared)
             future = ahead.submit(read_and_prepare)
             timing = backend.apply(prepared)
             if on_scan is not None:

@@ -47,6 +47,7 @@ class PreparedScan:
     stamp_ns: int = 0  # scan time (backends that keep time, e.g. the hash map's history)
     origin: np.ndarray | None = None  # sensor origin (the hash map's inflation range)
     scan: Scan | None = None  # for backends whose ray casting depends on the map (hash map)
+    index: int = -1  # the scan's index (parameter schedules), -1 when not from a scan stream
 
 
 class MapBackend(Protocol):

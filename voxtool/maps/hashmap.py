@@ -41,6 +41,7 @@ class HashVoxelMap:
         self.params, self.sensor = params, sensor
         self.p_free = p_free
         self.values: dict[str, float] = {}
+        self._d_in_ahead = float(d_in)
         self.offsets, self.offset_start = sphere_offsets(0)
         self.set_params(p_init=p_init, n_lim=n_lim, d_in=d_in, d_inf=d_inf, inf_range=inf_range, ttl=ttl)
         self.schedule = sorted((int(i), str(k), float(v)) for i, k, v in (schedule or []))
@@ -68,6 +69,8 @@ class HashVoxelMap:
             if k not in SCHEDULABLE:
                 raise ParameterError(f"hashmap has no parameter '{k}'")
             self.values[k] = float(v)
+        if "d_in" in kw:
+            self._d_in_ahead = float(kw["d_in"])
         v = self.values
         if not 0 < v["p_init"] < 1:
             raise ParameterError(f"p_init={v['p_init']} must lie in (0, 1)")
@@ -133,8 +136,12 @@ class HashVoxelMap:
     def prepare(self, scan: Scan) -> PreparedScan:
         """Input range and key checks only: which misses matter depends on the map, so the rays
         are cast in apply()."""
-        self._schedule_for(scan.index)
-        d_in = self.values["d_in"]
+        # prepare() may run ahead on another thread while apply() folds the previous scan in:
+        # it follows the schedule's d_in on its own and leaves the map's parameters to apply()
+        for i, k, value in self.schedule:
+            if i == scan.index and k == "d_in":
+                self._d_in_ahead = value
+        d_in = self._d_in_ahead
         if d_in >= 0 and scan.points.shape[0]:
             d = np.linalg.norm(scan.points.astype(np.float64) - scan.origin.astype(np.float64), axis=1)
             scan = Scan(scan.points[d <= d_in], scan.origin, scan.index, scan.stamp_ns, scan.source)
@@ -148,7 +155,7 @@ class HashVoxelMap:
                 merged = n - scan.points.shape[0]
         stamp = scan.stamp_ns if scan.stamp_ns else scan.index * self.period_ns
         return PreparedScan(np.empty(0, np.int64), 0, 0.0, int(scan.points.shape[0]), merged, stamp_ns=stamp,
-                            origin=scan.origin, scan=scan)
+                            origin=scan.origin, scan=scan, index=scan.index)
 
     def _trace(self, scan: Scan) -> tuple[np.ndarray, int]:
         """The scan's Morton-sorted (code << 1 | hit) updates that can change this map: every
@@ -202,6 +209,8 @@ class HashVoxelMap:
         return self.removed
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
+        if prepared.index >= 0:
+            self._schedule_for(prepared.index)
         v, s = self.values, self.sensor
         stamp = prepared.stamp_ns
         origin = (prepared.origin if prepared.origin is not None else np.zeros(3, np.float32)).astype(np.float64)
@@ -250,9 +259,9 @@ class HashVoxelMap:
         """Integrate shared newly-occupied voxels like sensor hits, without ray casting."""
         from voxtool.keys import morton_encode
 
-        self._schedule_for(index)
         codes = np.unique(morton_encode(np.asarray(keys, dtype=np.int64).reshape(-1, 3)))
-        self.apply(PreparedScan((codes << 1) | 1, 0, 0.0, stamp_ns=stamp_ns, origin=np.zeros(3, np.float32)))
+        self.apply(PreparedScan((codes << 1) | 1, 0, 0.0, stamp_ns=stamp_ns, origin=np.zeros(3, np.float32),
+                                index=index))
 
     # -- views ---------------------------------------------------------------------------------
     def _live(self) -> np.ndarray:
