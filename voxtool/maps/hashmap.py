@@ -135,7 +135,7 @@ class HashVoxelMap:
 
     def prepare(self, scan: Scan) -> PreparedScan:
         """Input range and key checks only: which misses matter depends on the map, so the rays
-        are cast in apply()."""
+        are cast later, against the map as it is then (update_codes(), called by apply())."""
         # prepare() may run ahead on another thread while apply() folds the previous scan in:
         # it follows the schedule's d_in on its own and leaves the map's parameters to apply()
         for i, k, value in self.schedule:
