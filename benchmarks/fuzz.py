@@ -36,6 +36,7 @@ def seeds() -> dict[str, list[bytes]]:
     from voxtool.config import MapParams, SensorModel
     from voxtool.io.bt import bt_bytes
     from voxtool.io.snapshot import snapshot_bytes
+    from voxtool.maps import make_backend
     from voxtool.maps.octree import OctreeMap
     from voxtool.sources.scan import Scan
 
@@ -53,6 +54,14 @@ def seeds() -> dict[str, list[bytes]]:
     m.integrate(Scan(pts, np.zeros(3, np.float32)))
     snap = [snapshot_bytes({"backend": "octree", "map_params": m.params.to_dict(), "sensor_model": m.sensor.to_dict()},
                            m.state_arrays(), codec=c) for c in ("zstd", "raw")]
+    # snapshots of the backends with their own state arrays, for the resealed target
+    stateful = list(snap)
+    for name, opts in (("hashmap", {"n_lim": 40, "d_inf": 0.4}), ("tiny", {"pool_blocks": 64, "map_size": 20.0})):
+        b = make_backend(name, MapParams(0.2), SensorModel(), **opts)
+        b.integrate(Scan(pts, np.zeros(3, np.float32)))
+        header = {"backend": name, "map_params": b.params.to_dict(), "sensor_model": b.sensor.to_dict(),
+                  "backend_params": b.extra_meta() if hasattr(b, "extra_meta") else {}}
+        stateful.append(snapshot_bytes(header, b.state_arrays(), codec="raw"))
     keys = np.array([[5, 5, 5], [6, 7, 8], [9, 9, 9]])
     st = np.array([0, 1, 2], np.uint8)
     packets = [encode_packet("r", 1, 2, s, c, 0.1, keys, st, box=(np.array([4, 4, 4]), np.array([8, 8, 8])) if s == "racer" else None,
@@ -68,8 +77,8 @@ def seeds() -> dict[str, list[bytes]]:
             log.metadata("r", {"first_stamp_ns": 0, "last_stamp_ns": 100})
         logs = [tmp.read_bytes()]
     bt = [bt_bytes(m.leaves(), 0.2, 0.0)]
-    return {"pcd": pcd, "ply": ply, "snapshot": snap, "packet": packets, "packet_resealed": packets,
-            "packet_log": logs, "bt": bt}
+    return {"pcd": pcd, "ply": ply, "snapshot": snap, "snapshot_resealed": stateful, "packet": packets,
+            "packet_resealed": packets, "packet_log": logs, "bt": bt}
 
 
 def targets():
@@ -77,6 +86,7 @@ def targets():
     from voxtool.codec.log import read_log
     from voxtool.codec.packet import HEADER, decode_packet, occupied_frames
     from voxtool.io.bt import parse_bt_bytes
+    from voxtool.io.mapfile import backend_from_snapshot
     from voxtool.io.snapshot import parse_snapshot
     from voxtool.sources.pcd import parse_pcd
     from voxtool.sources.ply import parse_ply
@@ -102,8 +112,26 @@ def targets():
         if len(blob) > 4 and blob[6] == 3:  # occupied: the receiver's frame reader too
             occupied_frames(blob)
 
-    return {"pcd": parse_pcd, "ply": parse_ply, "snapshot": parse_snapshot, "packet": packet,
-            "packet_resealed": resealed, "packet_log": log, "bt": parse_bt_bytes}
+    def snapshot_resealed(blob):
+        """The mutated snapshot with its array CRCs, header length and file CRC made right
+        again, parsed and loaded into its backend (whose own checks then see the mutation)."""
+        if len(blob) >= 20:
+            (head_len,) = struct.unpack_from("<I", blob, 12)
+            try:
+                header = json.loads(blob[16 : 16 + head_len])
+                payload = blob[16 + head_len : -4]
+                for e in header["arrays"]:
+                    off, n = int(e["offset"]), int(e["stored_bytes"])
+                    e["crc32"] = zlib.crc32(payload[max(off, 0) : max(off, 0) + max(n, 0)])
+                head = json.dumps(header).encode()
+                body = blob[:12] + struct.pack("<I", len(head)) + head + payload
+                blob = body + struct.pack("<I", zlib.crc32(body))
+            except Exception:  # not resealable: the parser sees the bytes as they are
+                pass
+        backend_from_snapshot(parse_snapshot(blob), "fuzz.vxm")
+
+    return {"pcd": parse_pcd, "ply": parse_ply, "snapshot": parse_snapshot, "snapshot_resealed": snapshot_resealed,
+            "packet": packet, "packet_resealed": resealed, "packet_log": log, "bt": parse_bt_bytes}
 
 
 BOUNDARY = [0x00, 0x01, 0x7F, 0x80, 0xFF]

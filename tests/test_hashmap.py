@@ -266,3 +266,20 @@ def test_schedule_in_the_build_pipeline_equals_scan_by_scan(tmp_path):
     assert np.array_equal(piped.state_arrays()["hm_history"], stepped.state_arrays()["hm_history"])
     assert [m["n_occ"] for m in piped.scan_metrics] == [m["n_occ"] for m in stepped.scan_metrics]
     assert piped.scan_metrics[1]["n_occ"] > 150 >= max(m["n_occ"] for m in piped.scan_metrics[2:6])
+
+
+def test_snapshot_asking_for_absurd_inflation_is_refused(tmp_path):
+    from voxtool.errors import FormatError
+    from voxtool.io.mapfile import load_map, save_map
+    from voxtool.io.snapshot import read_snapshot, write_snapshot
+
+    m = HashVoxelMap(MapParams(0.1), S, d_inf=0.2)
+    for scan in world_scans(2, 150, seed=12):
+        m.integrate(scan)
+    save_map(tmp_path / "h.vxm", m, {})
+    snap = read_snapshot(tmp_path / "h.vxm")
+    arrays = dict(snap.arrays)
+    arrays["hm_radius"] = np.full_like(arrays["hm_radius"], 64)  # 1.1 M cells per voxel
+    write_snapshot(tmp_path / "bad.vxm", snap.header, arrays)
+    with pytest.raises(FormatError, match="inflation would touch"):
+        load_map(tmp_path / "bad.vxm")

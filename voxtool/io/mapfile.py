@@ -48,10 +48,15 @@ def validate_leaves(leaves: Leaves, where: str) -> None:
 
 
 def load_map(path: str | Path) -> tuple[MapBackend, Snapshot]:
-    """Rebuild the backend stored in a snapshot."""
+    """Rebuild the backend stored in a snapshot file."""
+    snap = read_snapshot(path)
+    return backend_from_snapshot(snap, str(path)), snap
+
+
+def backend_from_snapshot(snap: Snapshot, path: str) -> MapBackend:
+    """The backend a parsed snapshot describes, its state loaded (everything checked first)."""
     from voxtool.maps import make_backend
 
-    snap = read_snapshot(path)
     h = snap.header
     try:
         params = MapParams(**h["map_params"])
@@ -65,6 +70,6 @@ def load_map(path: str | Path) -> tuple[MapBackend, Snapshot]:
         leaves = Leaves(snap.arrays["leaf_codes"], snap.arrays["leaf_depths"], snap.arrays["leaf_values"])
     except KeyError as err:
         raise FormatError(f"{path}: snapshot lacks array {err}") from err
-    validate_leaves(leaves, str(path))
+    validate_leaves(leaves, path)
     backend.load_state(snap.arrays)
-    return backend, snap
+    return backend

@@ -18,6 +18,9 @@ from voxtool.maps.octree import RAY_POOL, SMALL_SCAN, OctreeMap, merge_rays
 from voxtool.sources.scan import Scan
 
 SCHEDULABLE = ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")
+# a snapshot stores each voxel's inflation radius; loading re-inflates. A file asking for more
+# than this many sphere cells (8 GiB of records) is refused rather than run out of memory.
+MAX_LOAD_INFLATION = 1 << 27
 
 
 def sphere_offsets(max_radius: int) -> tuple[np.ndarray, np.ndarray]:
@@ -345,9 +348,13 @@ class HashVoxelMap:
         max_r = int(max(radius.max(initial=0), self.radius_vox))
         if max_r + 1 >= self.offset_start.shape[0]:
             self.offsets, self.offset_start = sphere_offsets(max_r)
-        sphere = int(self.offset_start[max_r + 1] - self.offset_start[max_r])
+        sizes = np.diff(self.offset_start)
+        cells = int(sizes[radius[radius >= 0]].sum())  # the inflation the file asks to rebuild
+        if cells > MAX_LOAD_INFLATION:
+            raise FormatError(f"hashmap snapshot: rebuilding its inflation would touch {cells:,} voxels "
+                              f"(more than {MAX_LOAD_INFLATION:,})")
         inflating = int((radius >= 0).sum())
-        self._reserve(n + inflating * sphere, int(np.unique(codes >> 9).shape[0]), inflating * (1 + sphere))
+        self._reserve(n + cells, int(np.unique(codes >> 9).shape[0]), inflating + cells)
         K.load_records(codes, values, np.float32(self.sensor.threshold_log), np.float32(logodds(self.p_free)),
                        self.rec, self.free, self.meta, self.tab, self.bkeys, self.bmask)
         K.restore(radius.astype(np.int32), last.astype(np.int64), hits.astype(np.int32), misses.astype(np.int32),
