@@ -298,3 +298,20 @@ def test_occupied_payload_garbage_is_refused_cleanly(raw, count):
             continue
         for _, keys in frames:
             assert keys.ndim == 2 and keys.shape[1] == 3 and np.all((keys >= 0) & (keys < 65536))
+
+
+def test_a_box_with_an_empty_side_decodes_to_nothing():
+    """Found by the fuzzer: a header box of 0 x 0 x 1 cells (CRC made right) tripped an
+    assertion in the Hilbert order instead of decoding to no voxel."""
+    import struct
+    import zlib
+
+    from voxtool.codec.hilbert import box_order
+    from voxtool.codec.packet import HEADER, decode_packet, encode_packet
+
+    assert box_order(0, 0, 1).shape == (0,)
+    b = bytearray(encode_packet("r", 1, 2, "hilbert", "none", 0.1, np.zeros((0, 3)), np.zeros(0, np.uint8)))
+    struct.pack_into("<3H", b, 74, 0, 0, 1)  # box size
+    struct.pack_into("<I", b, 92, zlib.crc32(bytes(b[HEADER.size:]), zlib.crc32(bytes(b[: HEADER.size - 4]))))
+    p = decode_packet(bytes(b))
+    assert p.keys.shape == (0, 3) and p.count == 0
