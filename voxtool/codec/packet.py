@@ -57,6 +57,7 @@ class Packet:
     stored_size: int
     keys: np.ndarray = field(repr=False)  # (N, 3) uint16 keys of the voxels the packet sets
     states: np.ndarray = field(repr=False)  # (N,) uint8: FREE / OCCUPIED / UNKNOWN
+    frames: list = field(default_factory=list, repr=False)  # occupied: [(frame seq, int64 keys)]
 
     @property
     def wire_bytes(self) -> int:
@@ -225,6 +226,7 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
         if raw_size != count * width + (count + 3) // 4 or count > cells:
             raise FormatError(f"{where}: {count} RACER entries do not fit {raw_size} bytes")
     raw = _decompress(blob[HEADER.size:], codec, raw_size, where)
+    frames: list[tuple[int, np.ndarray]] = []
     if scheme in ("hilbert", "nested"):
         codes = unpack_2bit(raw, cells)
         order = _cell_order(scheme, dims_a)
@@ -258,7 +260,7 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
     if np.any(states > UNKNOWN):
         raise FormatError(f"{where}: invalid voxel state")
     return Packet(name.rstrip(b"\0").decode(errors="replace"), seq, stamp, scheme, codec, kind, res, tuple(origin),
-                  tuple(lo), tuple(dims), count, raw_size, stored_size, keys.astype(np.uint16), states)
+                  tuple(lo), tuple(dims), count, raw_size, stored_size, keys.astype(np.uint16), states, frames)
 
 
 def _read_frames(raw: bytes, count: int, version: int, where: str) -> list[tuple[int, np.ndarray]]:
@@ -288,6 +290,4 @@ def _read_frames(raw: bytes, count: int, version: int, where: str) -> list[tuple
 
 def occupied_frames(blob: bytes, where: str = "packet") -> list[tuple[int, np.ndarray]]:
     """(frame seq, keys) of an `occupied` packet's ring buffer, for receivers that dedupe frames."""
-    p = decode_packet(blob, where)  # checks everything first
-    raw = _decompress(blob[HEADER.size:], p.codec, p.raw_size, where)
-    return _read_frames(raw, p.count, blob[4], where)
+    return decode_packet(blob, where).frames

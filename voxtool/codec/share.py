@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from voxtool.codec.log import PacketLogWriter, read_log
-from voxtool.codec.packet import decode_packet, encode_packet, occupied_frames
+from voxtool.codec.packet import decode_packet, encode_packet
 from voxtool.keys import morton_decode
 
 
@@ -60,7 +60,7 @@ def relay(log: str | Path, backend) -> int:
         p = decode_packet(blob, f"{log}: packet of '{robot}'")
         if p.scheme != "occupied":
             continue
-        for fseq, keys in occupied_frames(blob):
+        for fseq, keys in p.frames:
             if (p.robot, fseq) in seen:
                 continue
             seen.add((p.robot, fseq))

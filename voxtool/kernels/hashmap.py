@@ -150,10 +150,15 @@ def _in_brick(kx, ky, kz):
 
 
 @njit(cache=True, inline="always")
+def _brick_home(b, mask):
+    return ((b * _MULT) >> 24) & mask
+
+
+@njit(cache=True, inline="always")
 def brick_find(bkeys, b):
     """Slot of brick id b, or -1."""
     mask = bkeys.shape[0] - 1
-    s = ((b * _MULT) >> 24) & mask
+    s = _brick_home(b, mask)
     while True:
         k = bkeys[s]
         if k == b:
@@ -171,7 +176,7 @@ def _mark_present(code, bkeys, bmask, meta):
     s = brick_find(bkeys, b)
     if s < 0:
         mask = bkeys.shape[0] - 1
-        s = ((b * _MULT) >> 24) & mask
+        s = _brick_home(b, mask)
         while bkeys[s] != EMPTY and bkeys[s] != TOMB:
             s = (s + 1) & mask
         if bkeys[s] == TOMB:
@@ -205,7 +210,7 @@ def brick_rehash(old_keys, old_mask, bkeys, bmask):
     for i in range(old_keys.shape[0]):
         b = old_keys[i]
         if b >= 0:
-            s = ((b * _MULT) >> 24) & mask
+            s = _brick_home(b, mask)
             while bkeys[s] != EMPTY:
                 s = (s + 1) & mask
             bkeys[s] = b
@@ -343,7 +348,7 @@ def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slo
 
 @njit(cache=True)
 def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_free, R, free, meta, tab,
-                 bkeys, bmask, out_touched, out_new, out_changed):
+                 bkeys, bmask, out_touched, out_changed):
     """Alg. 1 + occupancy check over Morton-sorted (code << 1 | hit) updates. Hits create voxels
     (prior l_init); misses update only voxels the occupancy map holds (known-free space is never
     stored).
@@ -389,7 +394,6 @@ def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_fr
         v.state = 1 if x > l_occ else (0 if x < l_free else 2)
         v.last = stamp
         out_touched[nt] = r
-        out_new[nt] = is_new
         nt += 1
         if was_occ != (v.state == 1):
             out_changed[nc] = r
@@ -565,8 +569,7 @@ def manage(touched, n_touched, n_lim, oldest_allowed, R, free, meta, tab, bkeys,
     """Alg. 3: touched occupied voxels move to the back of the history, known-free ones leave the
     map, then the oldest leave until at most n_lim remain (and those older than the TTL).
     Every voxel that leaves the occupancy map is listed in out_codes / out_values (its log-odds
-    before it left; room for n_touched + history size). Returns (removed by the limit / TTL,
-    listed)."""
+    before it left; room for n_touched + history size). Returns how many are listed."""
     warm = np.int64(0)  # touch the history neighbours first (see _inflate_sphere)
     for i in range(n_touched):
         r = touched[i]
@@ -590,15 +593,13 @@ def manage(touched, n_touched, n_lim, oldest_allowed, R, free, meta, tab, bkeys,
             out_values[listed] = R[r].l
             listed += 1
             _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta)
-    removed = 0
     while meta[M_HSIZE] > 0 and (meta[M_HSIZE] > n_lim or R[meta[M_HEAD]].last < oldest_allowed):
         r = meta[M_HEAD]
         out_codes[listed] = R[r].code
         out_values[listed] = R[r].l
         listed += 1
         _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta)
-        removed += 1
-    return removed, listed
+    return listed
 
 
 @njit(cache=True)

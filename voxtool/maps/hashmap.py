@@ -138,7 +138,7 @@ class HashVoxelMap:
 
     def prepare(self, scan: Scan) -> PreparedScan:
         """Input range and key checks only: which misses matter depends on the map, so the rays
-        are cast later, against the map as it is then (update_codes(), called by apply())."""
+        are cast later, against the map as it is then (by update_codes() or apply())."""
         # prepare() may run ahead on another thread while apply() folds the previous scan in:
         # it follows the schedule's d_in on its own and leaves the map's parameters to apply()
         for i, k, value in self.schedule:
@@ -196,14 +196,19 @@ class HashVoxelMap:
             packed = packed[np.append(codes[1:] != codes[:-1], True)]
         return packed, sum(p[1] for p in parts)
 
-    def update_codes(self, prepared: PreparedScan) -> np.ndarray:
-        """Cast the prepared scan's rays against the map as it is now (once; apply() reuses the
-        result): the Morton codes whose state the next apply(prepared) updates."""
+    def _cast(self, prepared: PreparedScan) -> None:
+        """Cast the prepared scan's rays against the map as it is now, once: the updates go
+        into prepared.packed and the time into prepared.seconds."""
         if prepared.scan is not None:
             t0 = time.perf_counter()
             prepared.packed, prepared.steps = self._trace(prepared.scan)
             prepared.seconds += time.perf_counter() - t0
             prepared.scan = None
+
+    def update_codes(self, prepared: PreparedScan) -> np.ndarray:
+        """The Morton codes whose state the next apply(prepared) updates (casting its rays now;
+        apply() reuses them)."""
+        self._cast(prepared)
         return prepared.packed >> 1
 
     def removed_voxels(self) -> tuple[np.ndarray, np.ndarray]:
@@ -217,19 +222,18 @@ class HashVoxelMap:
         v, s = self.values, self.sensor
         stamp = prepared.stamp_ns
         origin = (prepared.origin if prepared.origin is not None else np.zeros(3, np.float32)).astype(np.float64)
-        self.update_codes(prepared)
+        self._cast(prepared)
         packed, steps = prepared.packed, prepared.steps
         t_cast = time.perf_counter()
         hit_bricks = packed[(packed & 1) == 1] >> 10  # Morton-sorted: a brick's voxels are adjacent
         n_hits = hit_bricks.shape[0]
         self._reserve(n_hits, int(np.count_nonzero(np.diff(hit_bricks))) + 1 if n_hits else 0)
         touched = np.empty(packed.shape[0], dtype=np.int64)
-        new = np.empty(packed.shape[0], dtype=np.bool_)
         changed = np.empty(packed.shape[0], dtype=np.int64)
         nt, nc = K.input_update(packed, stamp, np.float32(logodds(v["p_init"])), np.float32(s.hit_log),
                                 np.float32(s.miss_log), np.float32(s.clamp_min_log), np.float32(s.clamp_max_log),
                                 np.float32(s.threshold_log), np.float32(logodds(self.p_free)), self.rec, self.free,
-                                self.meta, self.tab, self.bkeys, self.bmask, touched, new, changed)
+                                self.meta, self.tab, self.bkeys, self.bmask, touched, changed)
         ch = changed[:nc]
         self.newly_occupied = self.rec["code"][ch[self.rec["state"][ch] == 1]]
         t1 = time.perf_counter()
@@ -243,7 +247,7 @@ class HashVoxelMap:
         oldest = stamp - int(v["ttl"] * 1e9) if v["ttl"] >= 0 else np.iinfo(np.int64).min
         size = nt + int(self.meta[K.M_HSIZE])
         gone_codes, gone_values = np.empty(size, np.int64), np.empty(size, np.float32)
-        _, n_gone = K.manage(touched, nt, n_lim, oldest, self.rec, self.free, self.meta, self.tab, self.bkeys,
+        n_gone = K.manage(touched, nt, n_lim, oldest, self.rec, self.free, self.meta, self.tab, self.bkeys,
                              self.bmask, self.ipool, self.imeta, gone_codes, gone_values)
         self.removed = (gone_codes[:n_gone], gone_values[:n_gone])
         t3 = time.perf_counter()
