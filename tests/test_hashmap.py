@@ -142,6 +142,10 @@ def check(m: HashVoxelMap, ref: ReferenceMap):
     assert {tuple(int(v) for v in morton_decode(np.array([c]))[0]): n for c, n in got.items()} == ref.inflation()
     assert brick_table_voxels(m) == as_keys(m.leaves().codes)  # exact: no stale or missing voxel
     assert int(m.meta[K.M_NINF]) == len(got)
+    # the hash table finds every live record and holds nothing else
+    live = np.flatnonzero(m.rec["state"][: int(m.meta[K.M_NEXT])] >= 0)
+    assert [K.find(m.tab, m.rec, int(c)) for c in m.rec["code"][live]] == live.tolist()
+    assert sorted(m.tab[m.tab >= 0].tolist()) == live.tolist()
 
 
 @pytest.mark.parametrize("kw", [
@@ -283,3 +287,13 @@ def test_snapshot_asking_for_absurd_inflation_is_refused(tmp_path):
     write_snapshot(tmp_path / "bad.vxm", snap.header, arrays)
     with pytest.raises(FormatError, match="inflation would touch"):
         load_map(tmp_path / "bad.vxm")
+
+
+def test_more_records_than_the_table_addresses_is_a_clear_error(monkeypatch):
+    from voxtool.errors import ParameterError
+
+    m = HashVoxelMap(MapParams(0.1), S, d_inf=0.2)
+    monkeypatch.setattr(K, "MAX_RECORDS", 5000)
+    with pytest.raises(ParameterError, match="exceed the 5000"):
+        for scan in world_scans(4, 400, seed=3):
+            m.integrate(scan)

@@ -98,6 +98,9 @@ class HashVoxelMap:
             grown[: self.ipool.shape[0]] = self.ipool
             self.ipool = grown
         need = int(self.meta[K.M_NEXT]) + new_records
+        if need > K.MAX_RECORDS:
+            raise ParameterError(f"hashmap: {need} voxel records exceed the {K.MAX_RECORDS} the table addresses; "
+                                 "lower n_lim or d_inf")
         cap = self.rec.shape[0]
         if need > cap:
             new_cap = max(need, 2 * cap)
@@ -134,6 +137,7 @@ class HashVoxelMap:
         # the table rebuilds run only when a table grows: load them now, not in a timed scan
         K.rehash(probe.tab, probe.rec, int(probe.meta[K.M_NEXT]))
         probe.query(np.zeros(1, np.int64))
+        K.merge_updates(np.zeros(1, np.int64), np.ones(1, np.int64), np.empty(2, np.int64))
         K.brick_rehash(probe.bkeys, probe.bmask, *K.new_bricks(probe.bkeys.shape[0]))
 
     def prepare(self, scan: Scan) -> PreparedScan:
@@ -189,11 +193,10 @@ class HashVoxelMap:
             # the second half on the pool, the first on this thread (one hand-off, not two)
             second = RAY_POOL.submit(part, 1, n // 2, n)
             parts = [part(0, 0, n // 2), second.result()]
-        packed = np.sort(np.concatenate([p[0] for p in parts]))
-        if len(parts) > 1 and packed.shape[0]:
-            # a voxel both halves updated: keep its last entry, the hit if either half hit it
-            codes = packed >> 1
-            packed = packed[np.append(codes[1:] != codes[:-1], True)]
+        packed = parts[0][0]
+        if len(parts) > 1:
+            merged = np.empty(packed.shape[0] + parts[1][0].shape[0], dtype=np.int64)
+            packed = merged[: K.merge_updates(packed, parts[1][0], merged)]
         return packed, sum(p[1] for p in parts)
 
     def _cast(self, prepared: PreparedScan) -> None:
