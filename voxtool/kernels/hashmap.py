@@ -353,6 +353,24 @@ def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slo
 
 
 @njit(cache=True)
+def balanced_split(points, origin):
+    """The point index that splits a scan's rays into two halves of equal DDA work: a ray's
+    step count is the L1 length of its key difference, so the L1 length of the ray is the
+    weight (Livox scans are not uniform along the point order: half the points can be 20 %
+    more steps than the other half)."""
+    n = points.shape[0]
+    total = 0.0
+    for i in range(n):
+        total += abs(points[i, 0] - origin[0]) + abs(points[i, 1] - origin[1]) + abs(points[i, 2] - origin[2])
+    acc = 0.0
+    for i in range(n):
+        acc += abs(points[i, 0] - origin[0]) + abs(points[i, 1] - origin[1]) + abs(points[i, 2] - origin[2])
+        if acc >= 0.5 * total:
+            return max(1, min(i + 1, n - 1))
+    return n // 2
+
+
+@njit(cache=True)
 def merge_updates(a, b, out):
     """Merge two Morton-sorted update lists (code << 1 | hit, each code once per list) into
     `out`: each code once, the hit if either list hit it. Returns the count."""
@@ -370,6 +388,22 @@ def merge_updates(a, b, out):
             j += 1
         n += 1
     return n
+
+
+@njit(cache=True)
+def count_hits(packed):
+    """(hits, distinct bricks they fall in) of Morton-sorted updates: the room input_update may
+    need (a brick's voxels are adjacent in Morton order)."""
+    hits = bricks = 0
+    last = np.int64(-1)
+    for i in range(packed.shape[0]):
+        if packed[i] & 1 == 1:
+            hits += 1
+            b = packed[i] >> 10
+            if b != last:
+                bricks += 1
+                last = b
+    return hits, bricks
 
 
 @njit(cache=True)

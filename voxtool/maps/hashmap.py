@@ -21,6 +21,7 @@ SCHEDULABLE = ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")
 # a snapshot stores each voxel's inflation radius; loading re-inflates. A file asking for more
 # than this many sphere cells (8 GiB of records) is refused rather than run out of memory.
 MAX_LOAD_INFLATION = 1 << 27
+INT64_MAX, INT64_MIN = int(np.iinfo(np.int64).max), int(np.iinfo(np.int64).min)
 
 
 def sphere_offsets(max_radius: int) -> tuple[np.ndarray, np.ndarray]:
@@ -80,6 +81,9 @@ class HashVoxelMap:
         if v["d_inf"] < 0 or v["d_inf"] / self.params.resolution > 64:
             raise ParameterError(f"d_inf={v['d_inf']} must lie in [0, 64 voxels]")
         self.radius_vox = int(math.floor(v["d_inf"] / self.params.resolution + 1e-9))
+        sm = self.sensor  # the input update's float32 constants, converted once per change
+        self._model = tuple(np.float32(x) for x in (logodds(v["p_init"]), sm.hit_log, sm.miss_log, sm.clamp_min_log,
+                                                    sm.clamp_max_log, sm.threshold_log, logodds(self.p_free)))
         if self.radius_vox + 1 >= self.offset_start.shape[0]:
             self.offsets, self.offset_start = sphere_offsets(self.radius_vox)
 
@@ -138,6 +142,7 @@ class HashVoxelMap:
         K.rehash(probe.tab, probe.rec, int(probe.meta[K.M_NEXT]))
         probe.query(np.zeros(1, np.int64))
         K.merge_updates(np.zeros(1, np.int64), np.ones(1, np.int64), np.empty(2, np.int64))
+        K.balanced_split(np.ones((2, 3), np.float32), np.zeros(3, np.float32))
         K.brick_rehash(probe.bkeys, probe.bmask, *K.new_bricks(probe.bkeys.shape[0]))
 
     def prepare(self, scan: Scan) -> PreparedScan:
@@ -191,8 +196,9 @@ class HashVoxelMap:
             parts = [part(0, 0, n)]
         else:
             # the second half on the pool, the first on this thread (one hand-off, not two)
-            second = RAY_POOL.submit(part, 1, n // 2, n)
-            parts = [part(0, 0, n // 2), second.result()]
+            cut = K.balanced_split(scan.points, scan.origin)
+            second = RAY_POOL.submit(part, 1, cut, n)
+            parts = [part(0, 0, cut), second.result()]
         packed = parts[0][0]
         if len(parts) > 1:
             merged = np.empty(packed.shape[0] + parts[1][0].shape[0], dtype=np.int64)
@@ -222,21 +228,17 @@ class HashVoxelMap:
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         if prepared.index >= 0:
             self._schedule_for(prepared.index)
-        v, s = self.values, self.sensor
+        v = self.values
         stamp = prepared.stamp_ns
         origin = (prepared.origin if prepared.origin is not None else np.zeros(3, np.float32)).astype(np.float64)
         self._cast(prepared)
         packed, steps = prepared.packed, prepared.steps
         t_cast = time.perf_counter()
-        hit_bricks = packed[(packed & 1) == 1] >> 10  # Morton-sorted: a brick's voxels are adjacent
-        n_hits = hit_bricks.shape[0]
-        self._reserve(n_hits, int(np.count_nonzero(np.diff(hit_bricks))) + 1 if n_hits else 0)
+        self._reserve(*K.count_hits(packed))
         touched = np.empty(packed.shape[0], dtype=np.int64)
         changed = np.empty(packed.shape[0], dtype=np.int64)
-        nt, nc = K.input_update(packed, stamp, np.float32(logodds(v["p_init"])), np.float32(s.hit_log),
-                                np.float32(s.miss_log), np.float32(s.clamp_min_log), np.float32(s.clamp_max_log),
-                                np.float32(s.threshold_log), np.float32(logodds(self.p_free)), self.rec, self.free,
-                                self.meta, self.tab, self.bkeys, self.bmask, touched, changed)
+        nt, nc = K.input_update(packed, stamp, *self._model, self.rec, self.free, self.meta, self.tab, self.bkeys,
+                                self.bmask, touched, changed)
         ch = changed[:nc]
         self.newly_occupied = self.rec["code"][ch[self.rec["state"][ch] == 1]]
         t1 = time.perf_counter()
@@ -246,8 +248,8 @@ class HashVoxelMap:
                   self.radius_vox, self.offsets, self.offset_start, self.rec, self.free, self.meta, self.tab,
                   self.ipool, self.imeta)
         t2 = time.perf_counter()
-        n_lim = int(v["n_lim"]) if v["n_lim"] >= 0 else np.iinfo(np.int64).max
-        oldest = stamp - int(v["ttl"] * 1e9) if v["ttl"] >= 0 else np.iinfo(np.int64).min
+        n_lim = int(v["n_lim"]) if v["n_lim"] >= 0 else INT64_MAX
+        oldest = stamp - int(v["ttl"] * 1e9) if v["ttl"] >= 0 else INT64_MIN
         size = nt + int(self.meta[K.M_HSIZE])
         gone_codes, gone_values = np.empty(size, np.int64), np.empty(size, np.float32)
         n_gone = K.manage(touched, nt, n_lim, oldest, self.rec, self.free, self.meta, self.tab, self.bkeys,
