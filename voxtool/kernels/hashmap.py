@@ -492,36 +492,35 @@ def _list_alloc(size, ipool, imeta, radius):
 
 
 @njit(cache=True)
-def _inflate_sphere(r, radius, offsets, offset_start, R, free, meta, tab, ipool, imeta):
+def _inflate_sphere(r, radius, offsets, offset_start, R, free, meta, tab, ipool, imeta, codes):
     """Add 1 to the inflation count of every voxel within `radius` voxels of r (creating
     inflated-only records as needed) and keep their record numbers: r's look-up table of what
     it inflated (the paper's T_inf), so that removal needs no hash look-up.
 
     Memory latency bounds this loop (random table slots and records), so it first requests
     the sphere's home slots, then the records they name, with prefetches: the cache misses
-    overlap instead of following one another, and the look-ups that follow hit the cache."""
+    overlap instead of following one another, and the look-ups that follow hit the cache.
+    `codes` is scratch room for the sphere's Morton codes (one per row of `offsets`)."""
     code = R[r].code
     x = compact16(code)
     y = compact16(code >> 1)
     z = compact16(code >> 2)
     lo, hi = offset_start[radius], offset_start[radius + 1]
     mask = tab.shape[0] - 1
+    m = 0
     for j in range(lo, hi):
         c = _sphere_code(x, y, z, offsets, j)
         if c >= 0:
+            codes[m] = c
+            m += 1
             prefetch(tab, _slot(c, mask))
-    for j in range(lo, hi):
-        c = _sphere_code(x, y, z, offsets, j)
-        if c >= 0:
-            t = tab[_slot(c, mask)]
-            if t >= 0:
-                prefetch(R, t)
+    for j in range(m):
+        t = tab[_slot(codes[j], mask)]
+        if t >= 0:
+            prefetch(R, t)
     block = _list_alloc(hi - lo, ipool, imeta, radius)
-    n = 0
-    for j in range(lo, hi):
-        c = _sphere_code(x, y, z, offsets, j)
-        if c < 0:
-            continue
+    for j in range(m):
+        c = codes[j]
         t = find(tab, R, c)
         if t < 0:
             t = _new_record(c, R, free, meta, tab)
@@ -529,9 +528,8 @@ def _inflate_sphere(r, radius, offsets, offset_start, R, free, meta, tab, ipool,
         if v.inf == 0:
             meta[M_NINF] += 1
         v.inf += 1
-        n += 1
-        ipool[block + n] = t
-    ipool[block] = n
+        ipool[block + 1 + j] = t
+    ipool[block] = m
     R[r].ilist = block
 
 
@@ -562,6 +560,7 @@ def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, o
     """Alg. 2: occupancy-changed voxels within inf_range of the sensor (re)inflate: a voxel that
     became occupied inflates the sphere of the current radius (remembered per voxel), one that
     stopped being occupied removes exactly the sphere it added. Returns voxels processed."""
+    codes = np.empty(offsets.shape[0], dtype=np.int64)
     done = 0
     for i in range(n_changed):
         r = changed[i]
@@ -577,7 +576,7 @@ def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, o
         radius = R[r].radius
         if state == 1 and radius < 0:
             R[r].radius = radius_now
-            _inflate_sphere(r, radius_now, offsets, offset_start, R, free, meta, tab, ipool, imeta)
+            _inflate_sphere(r, radius_now, offsets, offset_start, R, free, meta, tab, ipool, imeta, codes)
             done += 1
         elif state != 1 and radius >= 0:
             _deflate(r, R, free, meta, tab, ipool, imeta)
@@ -706,6 +705,7 @@ def load_records(codes, values, l_occ, l_free, R, free, meta, tab, bkeys, bmask)
 def restore(radius, last, hits, misses, history, offsets, offset_start, R, free, meta, tab, ipool, imeta):
     """After load_records (same order as the stored voxels): per-voxel radius, stamps and counts,
     the inflation map re-derived from the radii, and the history list in its stored order."""
+    codes = np.empty(offsets.shape[0], dtype=np.int64)
     n = radius.shape[0]
     for r in range(n):
         R[r].hits = hits[r]
@@ -713,6 +713,6 @@ def restore(radius, last, hits, misses, history, offsets, offset_start, R, free,
         R[r].last = last[r]
         if radius[r] >= 0:
             R[r].radius = radius[r]
-            _inflate_sphere(r, radius[r], offsets, offset_start, R, free, meta, tab, ipool, imeta)
+            _inflate_sphere(r, radius[r], offsets, offset_start, R, free, meta, tab, ipool, imeta, codes)
     for i in range(history.shape[0]):
         _push_back(history[i], R, meta)
