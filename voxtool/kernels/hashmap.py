@@ -658,8 +658,18 @@ def manage(touched, n_touched, n_lim, oldest_allowed, R, free, meta, tab, bkeys,
             out_values[listed] = R[r].l
             listed += 1
             _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta)
+    mask = tab.shape[0] - 1
     while meta[M_HSIZE] > 0 and (meta[M_HSIZE] > n_lim or R[meta[M_HEAD]].last < oldest_allowed):
         r = meta[M_HEAD]
+        # the oldest voxels are cold: while this one leaves, the next one's look-up list and
+        # table slot, and the record after it, are on their way (a linked list: one step ahead)
+        nxt = R[r].next
+        if nxt >= 0:
+            if R[nxt].ilist >= 0:
+                prefetch(ipool, R[nxt].ilist)
+            prefetch(tab, _slot(R[nxt].code, mask))
+            if R[nxt].next >= 0:
+                prefetch(R, R[nxt].next)
         out_codes[listed] = R[r].code
         out_values[listed] = R[r].l
         listed += 1
