@@ -91,10 +91,10 @@ def main() -> None:
         for n_lim, inf_range in SETUPS:
             share = Path(tmp) / f"share_{n_lim}_{inf_range}.mcap"
             row = run(src, n_lim, inf_range, share)
-            runs = [scan_by_scan(scans, n_lim, inf_range) for _ in range(max(args.repeat, 1))]
-            medians = sorted(r["t_tot_ms"]["median"] for r in runs)
-            row["scan_by_scan"] = runs[[r["t_tot_ms"]["median"] for r in runs].index(medians[len(medians) // 2])]
-            row["scan_median_runs_ms"] = medians
+            runs = sorted((scan_by_scan(scans, n_lim, inf_range) for _ in range(max(args.repeat, 1))),
+                          key=lambda r: r["t_tot_ms"]["median"])
+            row["scan_by_scan"] = runs[len(runs) // 2]  # the run with the median median
+            medians = row["scan_median_runs_ms"] = [r["t_tot_ms"]["median"] for r in runs]
             if n_lim < 0 and inf_range < 0:
                 row.update(relayed(src, share))
             rows.append(row)

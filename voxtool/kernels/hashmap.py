@@ -23,10 +23,10 @@ RECORD = np.dtype({
     "itemsize": 64,
 })
 EMPTY = -1
-AHEAD = 8  # look-ups a software pipeline requests ahead of use
-MAX_RECORDS = (1 << 31) - 1  # table slots hold int32 record numbers (128 GiB of records)
 TOMB = -2
 NOT_IN_HISTORY = -2
+AHEAD = 8  # look-ups a software pipeline requests ahead of use
+MAX_RECORDS = (1 << 31) - 1  # table slots hold int32 record numbers (128 GiB of records)
 # meta fields: history head / tail / size, free-list top, live records, tombstones, next unused
 # record, records with inflation count > 0, bricks and brick tombstones of the brick table
 M_HEAD, M_TAIL, M_HSIZE, M_FREE_TOP, M_LIVE, M_TOMBS, M_NEXT, M_NINF, M_BRICKS, M_BTOMBS = range(10)
@@ -247,7 +247,8 @@ def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slo
     kernels.raycast.scan_bricks), keeping what the hash map can use: the endpoint voxels (hits),
     and the voxels rays pass through that the occupancy map holds (misses; a miss elsewhere
     changes nothing: known-free space is not stored). A ray crossing an 8x8x8 brick that holds
-    no map voxel only steps the DDA.
+    no map voxel only steps the DDA. The DDA is written out in scalars, as in scan_bricks,
+    rather than through raycast's array-based _ray_* helpers: those measured slower here.
 
     Each voxel once, a hit winning over a miss, in `out` as code << 1 | hit, sorted; `seen`
     (all EMPTY, left so) is the de-duplicating set, `slots` its scratch. Returns (n, steps);
