@@ -241,6 +241,52 @@ def _set_add(seen, slots, n, update):
         s = (s + 1) & mask
 
 
+@njit(cache=True, inline="always")
+def ray_setup(points, i, origin, okx, oky, okz, resolution, max_range):
+    """Ray i of a scan from `origin` (key okx, oky, okz) as OctoMap casts it: computeUpdate's
+    max-range cut (the ray ends at max_range and marks no hit) and computeRayKeys'
+    initialisation (float32 direction and length, float64 tMax / tDelta). Returns (cut, end key,
+    tMax x/y/z, tDelta x/y/z, step signs x/y/z, length); an axis the ray does not move along has
+    tMax = tDelta = the largest float64, as has every axis of a ray that ends in its origin's voxel."""
+    res_factor = 1.0 / resolution
+    ox, oy, oz = origin[0], origin[1], origin[2]
+    ex, ey, ez = points[i, 0], points[i, 1], points[i, 2]
+    dx, dy, dz = ex - ox, ey - oy, ez - oz
+    cut = False
+    if max_range >= 0.0:
+        norm = np.sqrt(np.float64(dx * dx + dy * dy + dz * dz))
+        if norm > max_range:
+            cut = True
+            ln = np.float32(norm)
+            mr32 = np.float32(max_range)
+            ex, ey, ez = ox + (dx / ln) * mr32, oy + (dy / ln) * mr32, oz + (dz / ln) * mr32
+            dx, dy, dz = ex - ox, ey - oy, ez - oz
+    ekx = _coord_key(ex, res_factor)
+    eky = _coord_key(ey, res_factor)
+    ekz = _coord_key(ez, res_factor)
+    big = 1.7976931348623157e308
+    if ekx == okx and eky == oky and ekz == okz:  # no voxel to pass through (and no direction)
+        return cut, ekx, eky, ekz, big, big, big, big, big, big, 0, 0, 0, 0.0
+    length = np.float32(np.sqrt(np.float64(dx * dx + dy * dy + dz * dz)))
+    fx, fy, fz = dx / length, dy / length, dz / length
+    sx = 1 if fx > 0.0 else (-1 if fx < 0.0 else 0)
+    sy = 1 if fy > 0.0 else (-1 if fy < 0.0 else 0)
+    sz = 1 if fz > 0.0 else (-1 if fz < 0.0 else 0)
+    half = np.float64(np.float32(resolution * 0.5))
+    tx = ty = tz = big
+    ux = uy = uz = big
+    if sx != 0:
+        tx = ((np.float64(okx - 32768) + 0.5) * resolution + sx * half - np.float64(ox)) / np.float64(fx)
+        ux = resolution / abs(np.float64(fx))
+    if sy != 0:
+        ty = ((np.float64(oky - 32768) + 0.5) * resolution + sy * half - np.float64(oy)) / np.float64(fy)
+        uy = resolution / abs(np.float64(fy))
+    if sz != 0:
+        tz = ((np.float64(okz - 32768) + 0.5) * resolution + sz * half - np.float64(oz)) / np.float64(fz)
+        uz = resolution / abs(np.float64(fz))
+    return cut, ekx, eky, ekz, tx, ty, tz, ux, uy, uz, sx, sy, sz, np.float64(length)
+
+
 @njit(cache=True, nogil=True)
 def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slots, out):
     """One scan's rays with OctoMap's DDA and max-range rule (the same keys as
@@ -254,60 +300,25 @@ def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slo
     (all EMPTY, left so) is the de-duplicating set, `slots` its scratch. Returns (n, steps);
     n = -1 when the set would pass half full (the caller grows it and calls again)."""
     res_factor = 1.0 / resolution
-    ox, oy, oz = origin[0], origin[1], origin[2]
-    okx = _coord_key(ox, res_factor)
-    oky = _coord_key(oy, res_factor)
-    okz = _coord_key(oz, res_factor)
-    o64x, o64y, o64z = np.float64(ox), np.float64(oy), np.float64(oz)
-    half = np.float64(np.float32(resolution * 0.5))
-    mr32 = np.float32(max_range)
+    okx = _coord_key(origin[0], res_factor)
+    oky = _coord_key(origin[1], res_factor)
+    okz = _coord_key(origin[2], res_factor)
     limit = seen.shape[0] // 2
     n = 0
     steps = 0
-    big = 1.7976931348623157e308
     for i in range(points.shape[0]):
         if n >= limit:
             break
-        ex, ey, ez = points[i, 0], points[i, 1], points[i, 2]
-        dx, dy, dz = ex - ox, ey - oy, ez - oz
-        cut = False
-        if max_range >= 0.0:
-            norm = np.sqrt(np.float64(dx * dx + dy * dy + dz * dz))
-            if norm > max_range:
-                # OctoMap computeUpdate: the ray ends at max_range and marks no hit
-                cut = True
-                ln = np.float32(norm)
-                ex, ey, ez = ox + (dx / ln) * mr32, oy + (dy / ln) * mr32, oz + (dz / ln) * mr32
-                dx, dy, dz = ex - ox, ey - oy, ez - oz
-        ekx = _coord_key(ex, res_factor)
-        eky = _coord_key(ey, res_factor)
-        ekz = _coord_key(ez, res_factor)
+        cut, ekx, eky, ekz, tx, ty, tz, ux, uy, uz, sx, sy, sz, length64 = ray_setup(
+            points, i, origin, okx, oky, okz, resolution, max_range)
         if not cut:
             n = _set_add(seen, slots, n, (morton3(ekx, eky, ekz) << 1) | 1)
         if ekx == okx and eky == oky and ekz == okz:
             continue
-        # OctoMap computeRayKeys initialisation (float32 direction, float64 tMax / tDelta)
-        length = np.float32(np.sqrt(np.float64(dx * dx + dy * dy + dz * dz)))
-        fx, fy, fz = dx / length, dy / length, dz / length
-        sx = 1 if fx > 0.0 else (-1 if fx < 0.0 else 0)
-        sy = 1 if fy > 0.0 else (-1 if fy < 0.0 else 0)
-        sz = 1 if fz > 0.0 else (-1 if fz < 0.0 else 0)
-        tx = ty = tz = big
-        ux = uy = uz = big
-        if sx != 0:
-            tx = ((np.float64(okx - 32768) + 0.5) * resolution + sx * half - o64x) / np.float64(fx)
-            ux = resolution / abs(np.float64(fx))
-        if sy != 0:
-            ty = ((np.float64(oky - 32768) + 0.5) * resolution + sy * half - o64y) / np.float64(fy)
-            uy = resolution / abs(np.float64(fy))
-        if sz != 0:
-            tz = ((np.float64(okz - 32768) + 0.5) * resolution + sz * half - o64z) / np.float64(fz)
-            uz = resolution / abs(np.float64(fz))
         # the key that starts a new brick when stepping along each axis
         bx = 0 if sx > 0 else 7
         by = 0 if sy > 0 else 7
         bz = 0 if sz > 0 else 7
-        length64 = np.float64(length)
         kx, ky, kz = okx, oky, okz
         # every step moves one axis one voxel towards the end key, so the ray can reach it only
         # after exactly this many steps (an axis that overshoots never comes back)
