@@ -63,6 +63,29 @@ def test_stats_json_matches_build_and_compare_detects_drift(sample_map, tmp_path
     code, text = run("stats", out, "--compare", base, "--tolerance", "0.01")
     assert code == 6 and "occupied_voxels" in text and "drifted" in text
     assert run("stats", out, "--compare", base, "--tolerance", "0.1")[0] == 0
+    # a baseline that cannot guard anything is an error, not a pass
+    code, text = run("stats", out, "--compare", base, "--tolerance", "nan")
+    assert code == 2 and "--tolerance nan" in text
+    base.write_text(json.dumps({**stats, "occupied_voxels": "many"}))
+    code, text = run("stats", out, "--compare", base)
+    assert code == 5 and "'occupied_voxels' is 'many', not a number" in text
+    base.write_text(json.dumps({"backend": "octree"}))
+    code, text = run("stats", out, "--compare", base)
+    assert code == 5 and "holds none of the compared figures" in text
+
+
+def test_stats_compare_guards_packet_log_bandwidth(tmp_path):
+    log = tmp_path / "r1.mcap"
+    assert run("encode", "--sample", "-o", log, "--no-progress")[0] == 0
+    code, text = run("stats", log, "--json")
+    base = tmp_path / "base.json"
+    base.write_text(text)
+    assert run("stats", log, "--compare", base)[0] == 0
+    figures = json.loads(text)
+    figures["total"]["avg_Bps"] *= 0.9  # the log now takes 11 % more bandwidth than its baseline
+    base.write_text(json.dumps(figures))
+    code, text = run("stats", log, "--compare", base, "--tolerance", "0.05")
+    assert code == 6 and "total.avg_Bps" in text and "bytes" not in text.split("drifted:")[1]
 
 
 @pytest.mark.parametrize("suffix", [".ply", ".pcd"])
@@ -304,6 +327,10 @@ def test_hashmap_build_share_and_relay(tmp_path):
     assert relayed["frames"] == 5 and relayed["n_occ"] >= r["n_occ"]
     assert run("stats", tmp_path / "relayed.vxm")[0] == 0
     assert run("build", "--sample", "--share", share)[0] == 2  # sharing needs the hash map
+    for k in (0, -1):  # a broadcast carries at least the last frame
+        share.unlink(missing_ok=True)
+        code, text = run("build", "--sample", "--backend", "hashmap", "--share", share, "--ring", k)
+        assert code == 2 and f"--ring {k}" in text and not share.exists()
 
 
 def test_cli_backend_choices_match_the_registry():
@@ -323,4 +350,28 @@ def test_encode_takes_the_build_backend_options(tmp_path):
     code, text = run("stats", out, "--json")
     assert 0 < json.loads(text)["occupied_voxels"] <= 3000  # the limit reached the encoder's map
     code, text = run("encode", "--sample", "-o", log, "--backend", "hashmap", "--param", "bogus=1")
-    assert code == 2 and "does not take" in text
+    assert code == 2 and "has no option bogus" in text
+
+
+@pytest.mark.parametrize("backend, param, message", [
+    ("hashmap", "n_lim=abc", "n_lim='abc' must be an integer"),
+    ("hashmap", "n_lim=1.5", "n_lim=1.5 must be an integer"),
+    ("hashmap", "d_inf=wide", "d_inf='wide' must be a number"),
+    ("octocache", "tau=abc", "tau='abc' must be an integer"),
+    ("octocache", "order=7", "order=7 must be text"),
+    ("tiny", "nodes=5", "has no option nodes (it takes pool_blocks, map_size, hit, miss, prior)"),
+])
+def test_backend_options_of_the_wrong_kind_are_a_clear_error(tmp_path, backend, param, message):
+    out = tmp_path / "m.vxm"
+    result = CliRunner().invoke(main, ["build", "--sample", "--backend", backend, "--param", param, "-o", str(out)])
+    assert result.exit_code == 2 and isinstance(result.exception, SystemExit), result.output
+    assert message in result.output and not out.exists()
+
+
+def test_an_integral_float_is_an_integer_option(tmp_path):
+    from voxtool.io.snapshot import read_snapshot
+
+    out = tmp_path / "m.vxm"
+    code, text = run("build", "--sample", "--backend", "hashmap", "--param", "n_lim=2e3", "-o", out, "--no-progress")
+    assert code == 0, text
+    assert read_snapshot(out).header["backend_params"]["n_lim"] == 2000

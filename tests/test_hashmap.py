@@ -297,3 +297,33 @@ def test_more_records_than_the_table_addresses_is_a_clear_error(monkeypatch):
     with pytest.raises(ParameterError, match="exceed the 5000"):
         for scan in world_scans(4, 400, seed=3):
             m.integrate(scan)
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"d_inf": math.nan}, "d_inf=nan must be a finite number"),
+    ({"ttl": math.inf}, "ttl=inf must be a finite number (a negative one means unlimited)"),
+    ({"d_in": math.nan}, "d_in=nan must be a finite number"),
+    ({"p_init": 1.0}, "p_init=1.0 must lie in (0, 1)"),
+    ({"d_inf": 6.5}, "d_inf=6.5 must lie in [0, 64 voxels]"),
+    ({"p_free": 0.6}, "p_free=0.6 must lie between 0 and the occupancy threshold 0.5"),
+    ({"rate_hz": 0.0}, "rate_hz=0.0 must be a positive number"),
+    ({"schedule": [(3, "ttl", math.nan)]}, "ttl=nan must be a finite number"),
+    ({"schedule": [(3, "radius", 1.0)]}, "no parameter 'radius'"),
+])
+def test_parameter_values_are_checked_up_front(options, message):
+    """Every value, scheduled ones included, is refused before the first scan (NaN compares
+    false with every bound, so each check is written to fail on it)."""
+    from voxtool.errors import ParameterError
+
+    with pytest.raises(ParameterError) as err:
+        HashVoxelMap(MapParams(0.1), S, **options)
+    assert message in str(err.value)
+
+
+def test_a_refused_parameter_change_leaves_the_parameters_as_they_were():
+    from voxtool.errors import ParameterError
+
+    m = HashVoxelMap(MapParams(0.1), S, n_lim=100, d_inf=0.2)
+    with pytest.raises(ParameterError):
+        m.set_params(n_lim=50, d_inf=math.nan)
+    assert m.values["n_lim"] == 100 and m.values["d_inf"] == 0.2

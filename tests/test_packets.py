@@ -315,3 +315,24 @@ def test_a_box_with_an_empty_side_decodes_to_nothing():
     struct.pack_into("<I", b, 92, zlib.crc32(bytes(b[HEADER.size:]), zlib.crc32(bytes(b[: HEADER.size - 4]))))
     p = decode_packet(bytes(b))
     assert p.keys.shape == (0, 3) and p.count == 0
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda: EncodeOptions(max_interval=float("nan")), "--max-interval"),
+    (lambda: EncodeOptions(rate_hz=float("nan")), "--rate"),
+    (lambda: EncodeOptions(keyframe_every=-1), "--keyframe-every -1"),
+    (lambda: ChannelModel(loss=1.5), "loss rate 1.5"),
+    (lambda: ChannelModel(loss=float("nan")), "loss rate nan"),
+    (lambda: ChannelModel(max_delay=-1.0), "delay"),
+    (lambda: Extrinsic.parse("r1=nan,0,0,1,0,0,0"), "holds NaN or inf"),
+    (lambda: Extrinsic.parse("r1=0,0,0,0,0,0,0"), "quaternion has norm 0.000000"),
+    (lambda: Extrinsic.parse("r1=0,0,0,2,0,0,0"), "quaternion has norm 2.000000"),
+])
+def test_encode_channel_and_extrinsic_values_are_checked(make, message):
+    """NaN compares false with every bound, so each check is written to fail on it."""
+    from voxtool.errors import ParameterError
+
+    with pytest.raises(ParameterError) as err:
+        make()
+    assert message in str(err.value)
+    assert Extrinsic.parse("r1=0,0,0,0.7071068,0,0,0.7071068")[0] == "r1"  # a unit quaternion passes

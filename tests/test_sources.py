@@ -116,6 +116,23 @@ def test_slicing_start_stop_every(tmp_path, scans):
     assert [s.index for s in stream.scans] == [1, 3]
 
 
+@pytest.mark.parametrize("kind", ["pcd", "mcap", "graph"])
+def test_a_slice_that_selects_no_scan_is_an_error(tmp_path, scans, kind):
+    """Slicing past the end gives a clear error naming the source, not an empty map."""
+    from voxtool.errors import ParameterError
+
+    if kind == "pcd":
+        for i, (pts, o, q) in enumerate(scans):
+            write_pcd(tmp_path / f"{i}.pcd", pts, (*o, *q))
+        path = tmp_path
+    else:
+        path = tmp_path / f"s.{kind}"
+        (write_mcap if kind == "mcap" else write_graph)(path, scans)
+    assert open_source(path, SourceOptions(start=len(scans) - 1)).count == 1
+    with pytest.raises(ParameterError, match=f"{path.name}: --start {len(scans)} .* selects none of its {len(scans)} scans"):
+        open_source(path, SourceOptions(start=len(scans)))
+
+
 def test_nan_points_are_dropped_and_counted(tmp_path, scans):
     pts, o, q = scans[0]
     bad = pts.copy()

@@ -296,7 +296,8 @@ def cache_bench_cmd(source, sample, tau, buckets, order, threads, as_json, **kw)
 @click.option("--max-changes", default=50_000, show_default=True, type=int, help="Emit a packet once this many voxels changed state (d).")
 @click.option("--max-interval", default=0.5, show_default=True, type=float, help="...or this many seconds of scan time passed (t).")
 @click.option("--ring", default=3, show_default=True, type=int, help="Frames per packet of the 'occupied' scheme (k).")
-@click.option("--keyframe-every", default=0, show_default=True, type=int, help="Also emit a full-state keyframe every n packets.")
+@click.option("--keyframe-every", default=0, show_default=True, type=click.IntRange(min=0),
+              help="Also emit a full-state keyframe every n packets (0: never).")
 @click.option("--rate", "rate_hz", default=10.0, show_default=True, type=float, help="Scan rate (Hz) assumed when the source has no stamps.")
 @click.option("--json", "as_json", is_flag=True, help="Print the encoding report as JSON.")
 @click.option("--progress/--no-progress", default=None)
@@ -381,7 +382,7 @@ def decode(log, output, as_json, relay, d_inf):
 @click.option("-o", "--output", type=click.Path(path_type=Path), help="Write the fused state map (.vxm).")
 @click.option("--extrinsic", multiple=True, help="ROBOT=tx,ty,tz,qw,qx,qy,qz: pose of that robot's map in the fused frame.")
 @click.option("--simulate-loss", type=float, default=None, help="Run the request/response resend simulation with this loss rate.")
-@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the loss simulation.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Seed of the loss simulation.")
 @click.option("--json", "as_json", is_flag=True)
 @handle_errors
 def merge(logs, output, extrinsic, simulate_loss, seed, as_json):
@@ -415,13 +416,14 @@ def merge(logs, output, extrinsic, simulate_loss, seed, as_json):
 @click.argument("map_file", type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print as JSON.")
 @click.option("--compare", "baseline", type=click.Path(path_type=Path),
-              help="Baseline JSON (from `stats --json`); exit 6 when a figure drifts beyond --tolerance.")
+              help="Baseline JSON (from `stats --json`); exit 6 when a figure drifts beyond --tolerance "
+                   "(maps: voxel, node, scan and point counts; packet logs: packets, bytes, bandwidth).")
 @click.option("--tolerance", default=0.0, show_default=True, type=float, help="Relative tolerance for --compare.")
 @handle_errors
 def stats(map_file, as_json, baseline, tolerance):
     """Statistics of a map snapshot (.vxm), an OctoMap .bt file, or a packet log (.mcap)."""
     from voxtool.api import map_stats
-    from voxtool.stats import compare
+    from voxtool.stats import LOG_COMPARED, compare
 
     if map_file.suffix.lower() == ".mcap":
         from voxtool.codec.logstats import log_stats
@@ -433,6 +435,8 @@ def stats(map_file, as_json, baseline, tolerance):
             rows.append((f"robot {robot}", f"{r['scheme']}/{r['codec']}: avg {r['avg_Bps']:,.0f} B/s, max {r['max_Bps']:,.0f} B/s, "
                                            f"{r['bytes_per_changed_voxel']} B/changed voxel, x{r['compression_ratio']} compression, "
                                            f"{r['ratio_to_raw_sensor']} of raw sensor B/s"))
+        if baseline is not None:
+            compare(result, baseline, tolerance, LOG_COMPARED)
         emit(result, as_json, rows)
         return
     result = map_stats(map_file)

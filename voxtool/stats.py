@@ -8,12 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from voxtool.errors import FormatError, RegressionError
+from voxtool.errors import FormatError, ParameterError, RegressionError
 from voxtool.keys import keys_to_coords, leaf_span, morton_decode
 from voxtool.maps.base import Leaves
 
 # figures `stats --compare` checks; timings are machine-dependent and never compared
 COMPARED = ("occupied_voxels", "free_voxels", "leaf_nodes", "inner_nodes", "scans", "points", "points_dropped")
+LOG_COMPARED = ("packets", "bytes", "total.avg_Bps", "total.max_Bps")  # packet logs (`stats LOG.mcap`)
 
 
 def leaf_stats(leaves: Leaves, resolution: float, threshold_log: float) -> dict:
@@ -35,8 +36,17 @@ def leaf_stats(leaves: Leaves, resolution: float, threshold_log: float) -> dict:
     return out
 
 
-def compare(current: dict, baseline_path: str | Path, tolerance: float) -> list[str]:
-    """Figures that drifted beyond a relative tolerance; raises RegressionError listing them."""
+def _figure(d: dict, dotted: str):
+    for part in dotted.split("."):
+        if not isinstance(d, dict) or part not in d:
+            return None
+        d = d[part]
+    return d
+
+
+def compare(current: dict, baseline_path: str | Path, tolerance: float, figures: tuple = COMPARED) -> list[str]:
+    """Figures (dotted paths into the JSON) that drifted beyond a relative tolerance; raises
+    RegressionError listing them."""
     path = Path(baseline_path)
     try:
         baseline = json.loads(path.read_text())
@@ -44,14 +54,22 @@ def compare(current: dict, baseline_path: str | Path, tolerance: float) -> list[
         raise FormatError(f"{path}: cannot read baseline JSON ({err})") from err
     if not isinstance(baseline, dict):
         raise FormatError(f"{path}: baseline JSON is not an object")
-    drifted = []
-    for name in COMPARED:
-        if name not in baseline or name not in current:
+    if not (0 <= tolerance < math.inf):  # NaN would pass every figure
+        raise ParameterError(f"--tolerance {tolerance} must be a finite number >= 0")
+    drifted, compared = [], 0
+    for name in figures:
+        value, now = _figure(baseline, name), _figure(current, name)
+        if value is None or now is None:
             continue
-        old, new = float(baseline[name]), float(current[name])
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise FormatError(f"{path}: baseline figure '{name}' is {value!r}, not a number")
+        old, new = float(value), float(now)
+        compared += 1
         rel = abs(new - old) / max(abs(old), 1.0)
         if rel > tolerance or math.isnan(rel):
             drifted.append(f"{name}: {old:g} -> {new:g} ({rel:.2%} > {tolerance:.2%})")
+    if not compared:
+        raise FormatError(f"{path}: baseline holds none of the compared figures ({', '.join(figures)})")
     if drifted:
         raise RegressionError(f"{path}: {len(drifted)} figure(s) drifted: " + "; ".join(drifted))
     return drifted

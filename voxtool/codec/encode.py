@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from dataclasses import dataclass
@@ -28,8 +29,11 @@ class EncodeOptions:
     rate_hz: float = 10.0  # scan rate assumed when the source carries no stamps
 
     def __post_init__(self) -> None:
-        if self.max_changes < 1 or self.max_interval <= 0 or self.ring < 1 or self.rate_hz <= 0:
+        # written so that NaN fails too; an infinite interval (packets by count only) is allowed
+        if not (self.max_changes >= 1 and self.max_interval > 0 and self.ring >= 1 and 0 < self.rate_hz < math.inf):
             raise ParameterError("--max-changes, --max-interval, --ring and --rate must be positive")
+        if self.keyframe_every < 0:
+            raise ParameterError(f"--keyframe-every {self.keyframe_every} must be >= 0 (0: no keyframes)")
         if not self.robot or len(self.robot.encode()) > 16:
             raise ParameterError(f"robot id '{self.robot}' must be 1..16 bytes")
 

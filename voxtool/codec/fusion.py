@@ -18,6 +18,7 @@ from voxtool.codec.packet import OCCUPIED, UNKNOWN, Packet, decode_packet
 from voxtool.errors import FormatError, ParameterError
 from voxtool.geometry import Pose
 from voxtool.keys import coords_to_keys, keys_to_coords, morton_encode
+from voxtool.sources.poses import UNIT_TOLERANCE
 
 
 @dataclass
@@ -35,6 +36,11 @@ class Extrinsic:
             v = []
         if not robot or len(v) != 7:
             raise ParameterError(f"--extrinsic '{text}' must read ROBOT=tx,ty,tz,qw,qx,qy,qz")
+        if not np.all(np.isfinite(v)):
+            raise ParameterError(f"--extrinsic '{text}' holds NaN or inf")
+        norm = float(np.linalg.norm(v[3:]))
+        if abs(norm - 1.0) > UNIT_TOLERANCE:  # as for pose files: a typo, not a rotation to normalise
+            raise ParameterError(f"--extrinsic '{text}': quaternion has norm {norm:.6f}, expected a unit quaternion")
         return robot, cls(Pose.from_quat(v[:3], v[3], v[4], v[5], v[6]))
 
     def apply(self, keys: np.ndarray, resolution: float) -> np.ndarray:

@@ -12,6 +12,7 @@ its current map instead. The simulation ends when the receiver holds every robot
 from __future__ import annotations
 
 import heapq
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +20,7 @@ import numpy as np
 
 from voxtool.codec.fusion import Extrinsic, fuse
 from voxtool.codec.packet import decode_packet, keyframe_packet
+from voxtool.errors import ParameterError
 
 
 @dataclass
@@ -30,6 +32,15 @@ class ChannelModel:
     rate_limit_Bps: float = 5e6
     keyframe_gap: int = 1000
     max_rounds: int = 10_000
+
+    def __post_init__(self) -> None:
+        # written so that NaN fails every check
+        if not 0 <= self.loss < 1:
+            raise ParameterError(f"loss rate {self.loss} (--simulate-loss) must lie in [0, 1)")
+        if not 0 <= self.duplicate < 1:
+            raise ParameterError(f"duplicate rate {self.duplicate} must lie in [0, 1)")
+        if not (0 <= self.max_delay < math.inf and 0 < self.request_period < math.inf and self.rate_limit_Bps > 0):
+            raise ParameterError("channel delay, request period and rate limit must be finite and positive")
 
 
 def intervals(held: set[int]) -> list[tuple[int, int]]:

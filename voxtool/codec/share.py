@@ -16,6 +16,7 @@ import numpy as np
 
 from voxtool.codec.log import PacketLogWriter, read_log
 from voxtool.codec.packet import decode_packet, encode_packet
+from voxtool.errors import ParameterError
 from voxtool.keys import morton_decode
 
 
@@ -23,6 +24,8 @@ class ShareWriter:
     """Pipeline hook: after each scan, broadcast the ring of the last k newly-occupied frames."""
 
     def __init__(self, path: str | Path, robot: str, ring: int, codec: str, resolution: float) -> None:
+        if ring < 1:
+            raise ParameterError(f"--ring {ring}: a broadcast carries at least the last frame (k >= 1)")
         self.log = PacketLogWriter(path)
         self.robot, self.codec, self.resolution = robot, codec, resolution
         self.ring: deque = deque(maxlen=ring)

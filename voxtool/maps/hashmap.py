@@ -43,15 +43,17 @@ class HashVoxelMap:
                  d_in: float = -1.0, d_inf: float = 0.2, inf_range: float = -1.0, ttl: float = -1.0,
                  p_free: float = 0.4, schedule: list | None = None, rate_hz: float = 10.0) -> None:
         self.params, self.sensor = params, sensor
+        if not 0 < p_free < sensor.occupancy_threshold:
+            raise ParameterError(f"p_free={p_free} must lie between 0 and the occupancy threshold "
+                                 f"{sensor.occupancy_threshold}")
+        if not 0 < rate_hz < math.inf:
+            raise ParameterError(f"rate_hz={rate_hz} must be a positive number")
         self.p_free = p_free
         self.values: dict[str, float] = {}
         self._d_in_ahead = float(d_in)
         self.offsets, self.offset_start = sphere_offsets(0)
         self.set_params(p_init=p_init, n_lim=n_lim, d_in=d_in, d_inf=d_inf, inf_range=inf_range, ttl=ttl)
-        self.schedule = sorted((int(i), str(k), float(v)) for i, k, v in (schedule or []))
-        for _, k, _ in self.schedule:
-            if k not in SCHEDULABLE:
-                raise ParameterError(f"schedule: '{k}' is not one of {', '.join(SCHEDULABLE)}")
+        self.schedule = sorted((int(i), str(k), self._checked(str(k), v)) for i, k, v in (schedule or []))
         self.period_ns = int(1e9 / rate_hz)
         self.rec = K.new_records(1024)
         self.free = np.zeros(1024, dtype=np.int64)
@@ -67,19 +69,27 @@ class HashVoxelMap:
         self.newly_occupied: np.ndarray = np.zeros(0, np.int64)
 
     # -- parameters ----------------------------------------------------------------------------
+    def _checked(self, key: str, value) -> float:
+        """A value `key` may take (all of them, so that a schedule is checked before the first scan)."""
+        if key not in SCHEDULABLE:
+            raise ParameterError(f"hashmap has no parameter '{key}' (one of {', '.join(SCHEDULABLE)})")
+        x = float(value)
+        if not math.isfinite(x):
+            unlimited = " (a negative one means unlimited)" if key in ("n_lim", "d_in", "inf_range", "ttl") else ""
+            raise ParameterError(f"{key}={value} must be a finite number{unlimited}")
+        if key == "p_init" and not 0 < x < 1:
+            raise ParameterError(f"p_init={x} must lie in (0, 1)")
+        if key == "d_inf" and not 0 <= x <= 64 * self.params.resolution:
+            raise ParameterError(f"d_inf={x} must lie in [0, 64 voxels]")
+        return x
+
     def set_params(self, **kw) -> None:
         """Change p_init, n_lim, d_in, d_inf, inf_range, ttl; they take effect from the next scan."""
-        for k, v in kw.items():
-            if k not in SCHEDULABLE:
-                raise ParameterError(f"hashmap has no parameter '{k}'")
-            self.values[k] = float(v)
-        if "d_in" in kw:
-            self._d_in_ahead = float(kw["d_in"])
+        checked = {k: self._checked(k, v) for k, v in kw.items()}  # all or nothing
+        self.values.update(checked)
+        if "d_in" in checked:
+            self._d_in_ahead = checked["d_in"]
         v = self.values
-        if not 0 < v["p_init"] < 1:
-            raise ParameterError(f"p_init={v['p_init']} must lie in (0, 1)")
-        if v["d_inf"] < 0 or v["d_inf"] / self.params.resolution > 64:
-            raise ParameterError(f"d_inf={v['d_inf']} must lie in [0, 64 voxels]")
         self.radius_vox = int(math.floor(v["d_inf"] / self.params.resolution + 1e-9))
         sm = self.sensor  # the input update's float32 constants, converted once per change
         self._model = tuple(np.float32(x) for x in (logodds(v["p_init"]), sm.hit_log, sm.miss_log, sm.clamp_min_log,

@@ -45,6 +45,16 @@ class ScanStream:
     scans: Iterator[Scan]
 
 
+def _selected(path: Path, total: int, options: SourceOptions) -> int:
+    """How many of a source's `total` scans the slice options select; none of some is an error
+    (a script slicing past the end should not get an empty map and exit 0)."""
+    n = len(range(total)[options.start:options.stop:options.every])
+    if n == 0 and total > 0:
+        raise ParameterError(f"{path}: --start {options.start} --stop {options.stop} --every {options.every} "
+                             f"selects none of its {total} scans")
+    return n
+
+
 def _numeric_key(path: Path) -> tuple:
     """Sort scan files by the numbers in their names, never as strings of unequal length."""
     return tuple(int(n) for n in re.findall(r"\d+", path.stem)), path.name
@@ -116,7 +126,7 @@ def _open_cloud_files(path: Path, options: SourceOptions, suffix: str) -> ScanSt
                 pose = Pose(np.eye(3), pose.translation)
             yield make_scan(points, pose, i, stamp, str(f), f.stat().st_size, options, options.no_viewpoint)
 
-    return ScanStream(suffix.lstrip("."), path, len(range(len(files))[options.start:options.stop:options.every]), scans())
+    return ScanStream(suffix.lstrip("."), path, _selected(path, len(files), options), scans())
 
 
 def _open_pcd(path: Path, options: SourceOptions) -> ScanStream:
@@ -136,7 +146,7 @@ def _open_mcap(path: Path, options: SourceOptions) -> ScanStream:
         for i, (points, pose, stamp, nbytes) in islice(enumerate(src.scans()), options.start, options.stop, options.every):
             yield make_scan(points, pose, i, stamp, f"{path}#{i}", nbytes, options)
 
-    count = len(range(src.count)[options.start:options.stop:options.every]) if src.count is not None else None
+    count = _selected(path, src.count, options) if src.count is not None else None
     return ScanStream("mcap", path, count, scans())
 
 
@@ -149,7 +159,7 @@ def _open_graph(path: Path, options: SourceOptions) -> ScanStream:
         for i, (points, pose, nbytes) in islice(enumerate(iter_graph(path)), options.start, options.stop, options.every):
             yield make_scan(points, pose, i, 0, f"{path}#{i}", nbytes, options)
 
-    return ScanStream("graph", path, len(range(n)[options.start:options.stop:options.every]), scans())
+    return ScanStream("graph", path, _selected(path, n, options), scans())
 
 
 SOURCES: dict[str, Callable[[Path, SourceOptions], ScanStream]] = {
