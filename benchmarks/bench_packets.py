@@ -82,6 +82,8 @@ def racer_chunk_bandwidth(log: Path) -> dict:
         sizes.append(RACER_CHUNK_FIXED + RACER_CHUNK_PER_VOXEL * p.count)
     span = _span(next(iter(meta.values()), {}), stamps)
     return _bandwidth(np.array(stamps), np.array(sizes), span)
+
+
 SETTINGS = [("hilbert", "zstd"), ("hilbert", "zlib"), ("nested", "zstd"), ("nested", "zlib"), ("racer", "none"),
             ("racer", "zstd"), ("occupied", "zstd")]
 

@@ -84,7 +84,7 @@ def seeds() -> dict[str, list[bytes]]:
 def targets():
     from voxtool.codec.fusion import fuse
     from voxtool.codec.log import read_log
-    from voxtool.codec.packet import HEADER, decode_packet, occupied_frames
+    from voxtool.codec.packet import HEADER, decode_packet
     from voxtool.io.bt import parse_bt_bytes
     from voxtool.io.mapfile import backend_from_snapshot
     from voxtool.io.snapshot import parse_snapshot
@@ -108,9 +108,7 @@ def targets():
             struct.pack_into("<I", b, 88, len(b) - HEADER.size)
             struct.pack_into("<I", b, 92, zlib.crc32(bytes(b[HEADER.size:]), zlib.crc32(bytes(b[: HEADER.size - 4]))))
             blob = bytes(b)
-        packet(blob)
-        if len(blob) > 4 and blob[6] == 3:  # occupied: the receiver's frame reader too
-            occupied_frames(blob)
+        packet(blob)  # decode_packet also reads an `occupied` packet's frames (what relay uses)
 
     def snapshot_resealed(blob):
         """The mutated snapshot with its array CRCs, header length and file CRC made right

@@ -84,7 +84,7 @@ def test_packet_vectors_exist():
 
 def test_version_1_packets_still_decode():
     """Logs written before the varint `occupied` payload (version 2) stay readable."""
-    from voxtool.codec.packet import decode_packet, occupied_frames
+    from voxtool.codec.packet import decode_packet
 
     vector = Path(__file__).resolve().parents[1] / "formats" / "vectors" / "v1" / "packet_occupied.bin"
     blob = vector.read_bytes()
@@ -92,7 +92,7 @@ def test_version_1_packets_still_decode():
     spec = json.loads(vector.with_suffix(".json").read_text())
     p = decode_packet(blob)
     assert sorted([*map(int, k), int(s)] for k, s in zip(p.keys, p.states)) == spec["decoded"]["voxels"]
-    frames = occupied_frames(blob)
+    frames = p.frames
     assert [f for f, _ in frames] == [f for f, _ in spec["encode"]["frames"]]
     assert [k.tolist() for _, k in frames] == [k for _, k in spec["encode"]["frames"]]
 

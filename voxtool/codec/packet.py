@@ -286,8 +286,3 @@ def _read_frames(raw: bytes, count: int, version: int, where: str) -> list[tuple
     if pos != len(raw):
         raise FormatError(f"{where}: {len(raw) - pos} trailing payload bytes")
     return frames
-
-
-def occupied_frames(blob: bytes, where: str = "packet") -> list[tuple[int, np.ndarray]]:
-    """(frame seq, keys) of an `occupied` packet's ring buffer, for receivers that dedupe frames."""
-    return decode_packet(blob, where).frames

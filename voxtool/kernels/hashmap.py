@@ -371,13 +371,13 @@ def balanced_split(points, origin):
     weight (Livox scans are not uniform along the point order: half the points can be 20 %
     more steps than the other half)."""
     n = points.shape[0]
-    total = 0.0
-    for i in range(n):
-        total += abs(points[i, 0] - origin[0]) + abs(points[i, 1] - origin[1]) + abs(points[i, 2] - origin[2])
+    running = np.empty(n)  # summed ray lengths up to and including ray i
     acc = 0.0
     for i in range(n):
         acc += abs(points[i, 0] - origin[0]) + abs(points[i, 1] - origin[1]) + abs(points[i, 2] - origin[2])
-        if acc >= 0.5 * total:
+        running[i] = acc
+    for i in range(n):
+        if running[i] >= 0.5 * acc:
             return max(1, min(i + 1, n - 1))
     return n // 2
 
@@ -627,8 +627,11 @@ def _push_back(r, R, meta):
 
 
 @njit(cache=True)
-def _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta):
-    """Take r out of the occupancy map; its inflation goes with it (exact, whatever the range)."""
+def _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta, out_codes, out_values, listed):
+    """Take r out of the occupancy map, listing it (code, log-odds before it left) at out_*[listed];
+    its inflation goes with it (exact, whatever the range). Returns the new count listed."""
+    out_codes[listed] = R[r].code
+    out_values[listed] = R[r].l
     if R[r].radius >= 0:
         _deflate(r, R, free, meta, tab, ipool, imeta)
         R[r].radius = -1
@@ -640,6 +643,7 @@ def _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta):
         _drop_record(r, R, free, meta, tab)
     else:
         R[r].state = 2  # stays only as an inflated voxel of the inflation map
+    return listed + 1
 
 
 @njit(cache=True)
@@ -666,10 +670,7 @@ def manage(touched, n_touched, n_lim, oldest_allowed, R, free, meta, tab, bkeys,
         if R[r].state == 1:
             _push_back(r, R, meta)
         elif R[r].state == 0:
-            out_codes[listed] = R[r].code
-            out_values[listed] = R[r].l
-            listed += 1
-            _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta)
+            listed = _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta, out_codes, out_values, listed)
     mask = tab.shape[0] - 1
     while meta[M_HSIZE] > 0 and (meta[M_HSIZE] > n_lim or R[meta[M_HEAD]].last < oldest_allowed):
         r = meta[M_HEAD]
@@ -682,10 +683,7 @@ def manage(touched, n_touched, n_lim, oldest_allowed, R, free, meta, tab, bkeys,
             prefetch(tab, _slot(R[nxt].code, mask))
             if R[nxt].next >= 0:
                 prefetch(R, R[nxt].next)
-        out_codes[listed] = R[r].code
-        out_values[listed] = R[r].l
-        listed += 1
-        _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta)
+        listed = _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta, out_codes, out_values, listed)
     return listed
 
 

@@ -50,7 +50,6 @@ class HashVoxelMap:
             raise ParameterError(f"rate_hz={rate_hz} must be a positive number")
         self.p_free = p_free
         self.values: dict[str, float] = {}
-        self._d_in_ahead = float(d_in)
         self.offsets, self.offset_start = sphere_offsets(0)
         self.set_params(p_init=p_init, n_lim=n_lim, d_in=d_in, d_inf=d_inf, inf_range=inf_range, ttl=ttl)
         self.schedule = sorted((int(i), str(k), self._checked(str(k), v)) for i, k, v in (schedule or []))
