@@ -97,8 +97,8 @@ def reference() -> dict:
 
 def scan_by_scan(scans: list, n_lim: int, inf_range: float) -> dict:
     """Per-scan latency as a real-time node sees it: each scan already in memory, nothing else
-    running (in `voxtool build` the next scan is read on the other core while this one's map
-    update runs)."""
+    running (`voxtool build` also reads each scan from disk and, with --share, writes the shared
+    frames after it)."""
     from voxtool.config import MapParams, SensorModel
     from voxtool.maps.hashmap import HashVoxelMap
 
@@ -139,7 +139,7 @@ def main() -> None:
 
     scans = list(open_source(src, SourceOptions()).scans)
     rows = []
-    print("latency ms: 'build' = in the voxtool build pipeline (next scan read meanwhile), "
+    print("latency ms: 'build' = in the voxtool build pipeline (reading, --share writing between scans), "
           "'scan' = scan by scan, nothing else running; t_occ / t_inf / t_m are scan-by-scan means")
     print(f"{'n_lim':>7} {'inf_range':>9} {'n_occ':>7} {'n_inf':>7} {'build med':>9} {'p95':>6} {'scan med':>8} "
           f"{'p95':>6} {'t_occ':>6} {'t_inf':>6} {'t_m':>6} {'mem MB':>6} {'shared B/s':>10} {'reduction':>9} {'ref ms':>6} {'ref ns':>6}")

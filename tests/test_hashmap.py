@@ -228,15 +228,18 @@ def test_snapshot_round_trip(tmp_path):
     assert np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)
 
 
-@pytest.mark.parametrize("max_range", [-1.0, 2.5])
-def test_filtered_ray_casting_keeps_exactly_the_updates_that_matter(max_range):
+@pytest.mark.parametrize("max_range, set_size", [(-1.0, None), (2.5, None), (-1.0, 64)])
+def test_filtered_ray_casting_keeps_exactly_the_updates_that_matter(max_range, set_size):
     """The hash map casts rays against its own brick table; what it keeps must equal OctoMap's
     full update set (scan_updates) cut down to the hits and the misses on occupancy-map voxels,
-    with scans big enough to take the two-thread path and a max range that cuts rays."""
+    with scans big enough to take the two-thread path and a max range that cuts rays. With
+    de-duplicating sets too small at first, the casting grows them and starts over."""
     from voxtool.maps.octree import SMALL_SCAN, scan_updates
 
     params = MapParams(0.1, max_range=max_range)
     m = HashVoxelMap(params, S, n_lim=3000, d_inf=0.2)
+    if set_size is not None:
+        m._set_size = set_size
     kept_misses = 0
     for i, scan in enumerate(world_scans(6, SMALL_SCAN + 500, seed=40)):
         scan.index = i
@@ -248,6 +251,8 @@ def test_filtered_ray_casting_keeps_exactly_the_updates_that_matter(max_range):
         kept_misses += int((got & 1 == 0).sum())
         m.integrate(scan)
     assert len(m.leaves()) > 1000 and kept_misses > 100  # later scans met a populated map
+    if set_size is not None:
+        assert m._set_size > set_size
 
 
 def test_schedule_in_the_build_pipeline_equals_scan_by_scan(tmp_path):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import os
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -66,12 +67,31 @@ class BuildReport:
         }
 
 
+def usable_cores() -> int:
+    """Cores this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def read_ahead(backend: MapBackend) -> bool:
+    """Whether build() reads scan i+1 on a helper thread while scan i updates the map. A
+    backend that casts its rays itself on two threads (update_codes: the hash map) keeps its
+    second thread busy-waiting between scans (OpenMP's wait policy, for a prompt start of the
+    next cast), so on two cores a reader would be a third thread: measured on quick_shack, it
+    slowed the map update by more than reading ahead saved (docs/backends.md)."""
+    return not hasattr(backend, "update_codes") or usable_cores() > 2
+
+
 def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None, on_scan=None) -> BuildReport:
     """Integrate every scan of `stream` into `backend`.
 
     Reading and ray casting of scan i+1 run on a helper thread while scan i updates the map (both
     release the GIL), so `raycast` + `update` can exceed `total`, which is wall-clock time without
     the JIT warm-up (reported apart). A scan's latency is its ray casting plus its map update.
+    A backend that casts its rays itself on two threads (the hash map) reads ahead only when a
+    third core is free (see read_ahead()).
     """
     from tqdm import tqdm
 
@@ -96,18 +116,19 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
     # so it is paused until the loop ends.
     gc_was_enabled = gc.isenabled()
     gc.disable()
-    ahead = ThreadPoolExecutor(max_workers=1, thread_name_prefix="voxtool-prepare")
+    ahead = ThreadPoolExecutor(max_workers=1, thread_name_prefix="voxtool-prepare") if read_ahead(backend) else None
     try:
-        future = ahead.submit(read_and_prepare)
+        future = ahead.submit(read_and_prepare) if ahead else None
         while True:
-            scan, prepared, read_s = future.result()
+            scan, prepared, read_s = future.result() if future else read_and_prepare()
             if scan is None:
                 break
             if hasattr(backend, "update_codes"):
                 # a backend that casts rays against its own map (the hash map) does so now, on
                 # both cores, before the next scan's reading takes one of them
                 backend.update_codes(prepared)
-            future = ahead.submit(read_and_prepare)
+            if ahead:
+                future = ahead.submit(read_and_prepare)
             timing = backend.apply(prepared)
             if on_scan is not None:
                 on_scan(scan, backend)
@@ -132,7 +153,8 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
     finally:
         if gc_was_enabled:
             gc.enable()
-        ahead.shutdown(wait=True, cancel_futures=True)
+        if ahead:
+            ahead.shutdown(wait=True, cancel_futures=True)
         bar.close()
     report.time_total = time.perf_counter() - t_start
     return report

@@ -4,9 +4,11 @@ map sharing (seed: voxel-mapping-hash-map-sharing.md, Alg. 1-3, Sec. V). See doc
 from __future__ import annotations
 
 import math
+import threading
 import time
 from typing import Any
 
+import numba
 import numpy as np
 
 from voxtool.config import MapParams, SensorModel, logodds
@@ -14,7 +16,7 @@ from voxtool.errors import ParameterError
 from voxtool.kernels import hashmap as K
 from voxtool.keys import coords_to_keys
 from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
-from voxtool.maps.octree import RAY_POOL, SMALL_SCAN, OctreeMap, merge_rays
+from voxtool.maps.octree import SMALL_SCAN, OctreeMap, merge_rays
 from voxtool.sources.scan import Scan
 
 SCHEDULABLE = ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")
@@ -22,6 +24,9 @@ SCHEDULABLE = ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")
 # than this many sphere cells (8 GiB of records) is refused rather than run out of memory.
 MAX_LOAD_INFLATION = 1 << 27
 INT64_MAX, INT64_MIN = int(np.iinfo(np.int64).max), int(np.iinfo(np.int64).min)
+# numba's fallback threading layer (workqueue, where neither OpenMP nor TBB loads) aborts the
+# process when two threads launch parallel kernels at once: maps in several threads take turns
+PARALLEL_LAUNCH = threading.Lock()
 
 
 def sphere_offsets(max_radius: int) -> tuple[np.ndarray, np.ndarray]:
@@ -64,7 +69,7 @@ class HashVoxelMap:
         self.scan_metrics: list[dict] = []
         self.removed: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.float32))
         self._set_size = 1 << 14  # de-duplicating sets of the ray casting, one per half scan
-        self._sets: dict[int, np.ndarray] = {}
+        self._bufs: tuple[np.ndarray, ...] | None = None
         self.newly_occupied: np.ndarray = np.zeros(0, np.int64)
 
     # -- parameters ----------------------------------------------------------------------------
@@ -153,8 +158,7 @@ class HashVoxelMap:
         # the table rebuilds run only when a table grows: load them now, not in a timed scan
         K.rehash(probe.tab, probe.rec, int(probe.meta[K.M_NEXT]))
         probe.query(np.zeros(1, np.int64))
-        K.merge_updates(np.zeros(1, np.int64), np.ones(1, np.int64), np.empty(2, np.int64))
-        K.balanced_split(np.ones((2, 3), np.float32), np.zeros(3, np.float32))
+        probe._trace(Scan(np.tile(np.array([[1.0, 0.5, 0.25]], np.float32), (SMALL_SCAN, 1)), np.zeros(3, np.float32)))
         K.brick_rehash(probe.bkeys, probe.bmask, *K.new_bricks(probe.bkeys.shape[0]))
 
     def prepare(self, scan: Scan) -> PreparedScan:
@@ -188,34 +192,28 @@ class HashVoxelMap:
         n = scan.points.shape[0]
         if n == 0:
             return np.empty(0, np.int64), 0
-
-        def part(which: int, lo: int, hi: int) -> tuple[np.ndarray, int]:
-            while True:
-                size = self._set_size
-                seen = self._sets.get(which)
-                if seen is None or seen.shape[0] != size:
-                    seen = self._sets[which] = np.full(size, K.EMPTY, dtype=np.int64)
-                slots = np.empty(size // 2 + 1, dtype=np.int64)
-                out = np.empty(size // 2 + 1, dtype=np.int64)
-                k, steps = K.trace_present(scan.points[lo:hi], scan.origin, self.params.resolution,
-                                           self.params.max_range, self.bkeys, self.bmask,
-                                           seen, slots, out)
+        while True:
+            size = self._set_size
+            if self._bufs is None or self._bufs[0].shape[1] != size:
+                # de-duplicating sets (all EMPTY; the kernels leave them so) and scratch, one row per half
+                self._bufs = (np.full((2, size), K.EMPTY, dtype=np.int64), np.empty((2, size // 2 + 1), np.int64),
+                              np.empty((2, size // 2 + 1), np.int64), np.zeros((2, 2), np.int64),
+                              np.empty(size + 2, np.int64))
+            seen, slots, out, counts, merged = self._bufs
+            if n < SMALL_SCAN:  # one thread: a parallel launch costs more than it saves here
+                k, steps = K.trace_present(scan.points, scan.origin, self.params.resolution, self.params.max_range,
+                                           self.bkeys, self.bmask, seen[0], slots[0], out[0])
                 if k >= 0:
-                    return out[:k], steps
-                self._set_size *= 2  # rare: the set grows to the busiest scan seen
-
-        if n < SMALL_SCAN:
-            parts = [part(0, 0, n)]
-        else:
-            # the second half on the pool, the first on this thread (one hand-off, not two)
-            cut = K.balanced_split(scan.points, scan.origin)
-            second = RAY_POOL.submit(part, 1, cut, n)
-            parts = [part(0, 0, cut), second.result()]
-        packed = parts[0][0]
-        if len(parts) > 1:
-            merged = np.empty(packed.shape[0] + parts[1][0].shape[0], dtype=np.int64)
-            packed = merged[: K.merge_updates(packed, parts[1][0], merged)]
-        return packed, sum(p[1] for p in parts)
+                    return out[0, :k].copy(), steps
+            else:
+                cut = K.balanced_split(scan.points, scan.origin)
+                with PARALLEL_LAUNCH:
+                    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))  # two halves: two threads
+                    k = K.trace_halves(scan.points, cut, scan.origin, self.params.resolution, self.params.max_range,
+                                       self.bkeys, self.bmask, seen, slots, out, counts, merged)
+                if k >= 0:
+                    return merged[:k].copy(), int(counts[:, 1].sum())
+            self._set_size *= 2  # rare: the sets grow to the busiest scan seen
 
     def _cast(self, prepared: PreparedScan) -> None:
         """Cast the prepared scan's rays against the map as it is now, once: the updates go
