@@ -9,7 +9,8 @@ column, `inf_range` here) 8 m as in the paper's rows a-c, or unlimited.
 medians with their range: on a shared VM a single run can land in a slow minute. Each row also
 times two fixed reference workloads (compute, memory latency; see reference()) just before its
 scan-by-scan runs, so that a slow sitting shows as a slow reference rather than passing for a
-slower voxtool.
+slower voxtool. The second ray-casting thread busy-waits between scans (OpenMP's default;
+docs/backends.md): run with OMP_WAIT_POLICY=passive to see the latency without it.
 """
 
 from __future__ import annotations
