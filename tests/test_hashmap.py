@@ -255,18 +255,32 @@ def test_filtered_ray_casting_keeps_exactly_the_updates_that_matter(max_range, s
         assert m._set_size > set_size
 
 
-def test_schedule_in_the_build_pipeline_equals_scan_by_scan(tmp_path):
-    """In `build` the next scan is prepared on another thread while this one is folded in;
-    a scheduled change must still take effect at exactly its scan."""
+@pytest.mark.parametrize("cores", [2, 8])
+def test_schedule_in_the_build_pipeline_equals_scan_by_scan(tmp_path, monkeypatch, cores):
+    """In `build` with a third core free, the next scan is prepared on another thread while this
+    one is folded in; a scheduled change must still take effect at exactly its scan. On two
+    cores the hash map's scans are read and prepared in turn, on the calling thread."""
+    import threading
+
     from test_packets import scene_dir
 
+    from voxtool import pipeline
     from voxtool.pipeline import build
     from voxtool.sources import SourceOptions, open_source
 
+    monkeypatch.setattr(pipeline, "usable_cores", lambda: cores)
     src = scene_dir(tmp_path, n=8, seed=5)
     schedule = [(2, "n_lim", 150), (3, "d_in", 2.5), (5, "d_inf", 0.3), (6, "n_lim", 400)]
     piped = HashVoxelMap(MapParams(0.1), S, n_lim=-1, d_inf=0.2, schedule=schedule)
+    prepare, threads = piped.prepare, set()
+
+    def spy(scan):
+        threads.add(threading.current_thread() is threading.main_thread())
+        return prepare(scan)
+
+    piped.prepare = spy
     build(open_source(src, SourceOptions()), piped, progress=False)
+    assert threads == ({False} if cores > 2 else {True})
     stepped = HashVoxelMap(MapParams(0.1), S, n_lim=-1, d_inf=0.2, schedule=schedule)
     for scan in open_source(src, SourceOptions()).scans:
         stepped.integrate(scan)

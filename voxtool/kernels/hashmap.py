@@ -376,9 +376,10 @@ def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slo
 def trace_halves(points, cut, origin, resolution, max_range, bkeys, bmask, seen, slots, out, counts, merged):
     """trace_present over points[:cut] and points[cut:] on two threads at once (row w of seen,
     slots, out and counts is half w's; counts[w] = (n, steps)), then the two sorted lists merged
-    into `merged`. One numba parallel region rather than a Python thread pool: the pool's
-    hand-off (waking its worker, then waking this thread on the result) measured ~0.15 ms a
-    scan. Returns the merged count, or -1 when a half's set would pass half full."""
+    into `merged`. One numba parallel region rather than a Python thread pool: waking the pool's
+    worker and then this thread on its result took ~0.13 ms a scan, and OpenMP's worker, still
+    busy-waiting from the last scan, starts at once (docs/backends.md). Returns the merged
+    count, or -1 when a half's set would pass half full."""
     for w in prange(2):
         lo = 0 if w == 0 else cut
         hi = cut if w == 0 else points.shape[0]
