@@ -346,3 +346,31 @@ def test_a_refused_parameter_change_leaves_the_parameters_as_they_were():
     with pytest.raises(ParameterError):
         m.set_params(n_lim=50, d_inf=math.nan)
     assert m.values["n_lim"] == 100 and m.values["d_inf"] == 0.2
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
+def test_a_child_forked_after_a_parallel_cast_casts_the_same_map():
+    """GNU OpenMP is not fork-safe: numba ends a forked child that launches a parallel region
+    after its parent did. Such a child must cast on its own thread and build the same map."""
+    import multiprocessing
+    import os
+
+    from voxtool.maps.octree import SMALL_SCAN
+
+    scans = world_scans(3, SMALL_SCAN + 500, seed=7)
+    parent = HashVoxelMap(MapParams(0.1), S, n_lim=2000, d_inf=0.2)
+    for scan in scans:
+        parent.integrate(scan)  # big scans: the two-thread (parallel region) path
+    want = parent.leaves()
+
+    def child():
+        m = HashVoxelMap(MapParams(0.1), S, n_lim=2000, d_inf=0.2)
+        for scan in scans:
+            m.integrate(scan)
+        got = m.leaves()
+        os._exit(0 if np.array_equal(got.codes, want.codes) and np.array_equal(got.values, want.values) else 3)
+
+    p = multiprocessing.get_context("fork").Process(target=child)
+    p.start()
+    p.join(120)
+    assert p.exitcode == 0

@@ -4,6 +4,7 @@ map sharing (seed: voxel-mapping-hash-map-sharing.md, Alg. 1-3, Sec. V). See doc
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from typing import Any
@@ -27,6 +28,21 @@ INT64_MAX, INT64_MIN = int(np.iinfo(np.int64).max), int(np.iinfo(np.int64).min)
 # numba's fallback threading layer (workqueue, where neither OpenMP nor TBB loads) aborts the
 # process when two threads launch parallel kernels at once: maps in several threads take turns
 PARALLEL_LAUNCH = threading.Lock()
+
+
+class _Parallel:
+    launched = False  # this process has cast in a parallel region
+    usable = True  # False in a child forked after that: GNU OpenMP is not fork-safe, and numba
+    # ends such a child when it launches a parallel region; it casts on its calling thread instead
+
+
+def _after_fork_in_child() -> None:
+    if _Parallel.launched:
+        _Parallel.usable = False
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def sphere_offsets(max_radius: int) -> tuple[np.ndarray, np.ndarray]:
@@ -200,7 +216,7 @@ class HashVoxelMap:
                               np.empty((2, size // 2 + 1), np.int64), np.zeros((2, 2), np.int64),
                               np.empty(size + 2, np.int64))
             seen, slots, out, counts, merged = self._bufs
-            if n < SMALL_SCAN:  # one thread: a parallel launch costs more than it saves here
+            if n < SMALL_SCAN or not _Parallel.usable:  # one thread (a small scan: a launch costs more than it saves)
                 k, steps = K.trace_present(scan.points, scan.origin, self.params.resolution, self.params.max_range,
                                            self.bkeys, self.bmask, seen[0], slots[0], out[0])
                 if k >= 0:
@@ -208,6 +224,7 @@ class HashVoxelMap:
             else:
                 cut = K.balanced_split(scan.points, scan.origin)
                 with PARALLEL_LAUNCH:
+                    _Parallel.launched = True
                     numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))  # two halves: two threads
                     k = K.trace_halves(scan.points, cut, scan.origin, self.params.resolution, self.params.max_range,
                                        self.bkeys, self.bmask, seen, slots, out, counts, merged)
