@@ -373,4 +373,6 @@ def test_a_child_forked_after_a_parallel_cast_casts_the_same_map():
     p = multiprocessing.get_context("fork").Process(target=child)
     p.start()
     p.join(120)
+    if p.exitcode is None:
+        p.kill()
     assert p.exitcode == 0

@@ -131,3 +131,33 @@ def test_snapshot_round_trip_is_lossless(tmp_path):
     assert np.array_equal(a.values, b.values)
     assert back.node_counts() == m.node_counts()
     assert snap.header["backend"] == "octree" and snap.header["info"]["scans"] == 4
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
+def test_a_child_forked_after_a_parallel_cast_builds_the_same_map():
+    """A forked child inherits the ray pool but none of its threads: the child must get a pool
+    of its own (it hung waiting for work no thread ran) and build the same map."""
+    import multiprocessing
+    import os
+
+    from voxtool.maps.octree import SMALL_SCAN
+
+    scans = world_scans(2, SMALL_SCAN + 500, seed=8)
+    parent = OctreeMap(MapParams(0.1), SensorModel())
+    for scan in scans:
+        parent.integrate(scan)  # big scans: the two-thread path
+    want = parent.leaves()
+
+    def child():
+        m = OctreeMap(MapParams(0.1), SensorModel())
+        for scan in scans:
+            m.integrate(scan)
+        got = m.leaves()
+        os._exit(0 if np.array_equal(got.codes, want.codes) and np.array_equal(got.values, want.values) else 3)
+
+    p = multiprocessing.get_context("fork").Process(target=child)
+    p.start()
+    p.join(60)
+    if p.exitcode is None:
+        p.kill()
+    assert p.exitcode == 0

@@ -409,7 +409,7 @@ def balanced_split(points, origin):
     return n // 2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def merge_updates(a, b, out):
     """Merge two Morton-sorted update lists (code << 1 | hit, each code once per list) into
     `out`: each code once, the hit if either list hit it. Returns the count."""
@@ -429,7 +429,7 @@ def merge_updates(a, b, out):
     return n
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def count_hits(packed):
     """(hits, distinct bricks they fall in) of Morton-sorted updates: the room input_update may
     need (a brick's voxels are adjacent in Morton order)."""
@@ -445,7 +445,7 @@ def count_hits(packed):
     return hits, bricks
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_free, R, free, meta, tab,
                  bkeys, bmask, out_touched, out_changed):
     """Alg. 1 + occupancy check over Morton-sorted (code << 1 | hit) updates. Hits create voxels
@@ -593,7 +593,7 @@ def _deflate(r, R, free, meta, tab, ipool, imeta):
     R[r].ilist = -1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, offsets, offset_start,
             R, free, meta, tab, ipool, imeta):
     """Alg. 2: occupancy-changed voxels within inf_range of the sensor (re)inflate: a voxel that
@@ -673,7 +673,7 @@ def _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta, out_code
     return listed + 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def manage(touched, n_touched, n_lim, oldest_allowed, R, free, meta, tab, bkeys, bmask, ipool, imeta,
            out_codes, out_values):
     """Alg. 3: touched occupied voxels move to the back of the history, known-free ones leave the

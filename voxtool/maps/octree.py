@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -93,6 +94,17 @@ class OctreePool:
 
 
 RAY_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="voxtool-raycast")
+
+
+def _new_ray_pool_in_child() -> None:
+    # a forked child inherits the pool but none of its threads: work submitted to it would wait
+    # forever (a multiprocessing worker casting rays hung). The child gets a pool of its own.
+    global RAY_POOL
+    RAY_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="voxtool-raycast")
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_new_ray_pool_in_child)
 _SPLITS = 2  # this machine class has 2 cores; each thread traces half of the rays
 SMALL_SCAN = 2_000  # points; below this one thread traces the whole scan
 _BUFFERS = threading.local()
