@@ -18,6 +18,18 @@ def coord_key(c: float, res: float) -> int:
     return int(math.floor((1.0 / res) * float(c))) + 32768
 
 
+def discrete_points(points: np.ndarray, res: float) -> np.ndarray:
+    """OctoMap's computeDiscreteUpdate: the centre of each distinct end voxel (keyToCoord), in
+    the order the voxels first occur."""
+    seen, out = set(), []
+    for p in points:
+        k = tuple(coord_key(p[i], res) for i in range(3))
+        if k not in seen:
+            seen.add(k)
+            out.append([F32((k[i] - 32768 + 0.5) * res) for i in range(3)])
+    return np.array(out, dtype=np.float32).reshape(-1, 3)
+
+
 def ray_keys(origin: np.ndarray, end: np.ndarray, res: float) -> list[tuple[int, int, int]]:
     ko = tuple(coord_key(origin[i], res) for i in range(3))
     ke = tuple(coord_key(end[i], res) for i in range(3))

@@ -6,12 +6,13 @@ import math
 
 import numpy as np
 import pytest
-from reference import scan_update_sets
+from reference import discrete_points, scan_update_sets
 from test_octree import world_scans
 
 from voxtool.config import MapParams, SensorModel, logodds
 from voxtool.keys import morton_decode, morton_encode
 from voxtool.maps.hashmap import HashVoxelMap, K
+from voxtool.sources.scan import Scan
 
 F32 = np.float32
 S = SensorModel()
@@ -20,8 +21,8 @@ S = SensorModel()
 class ReferenceMap:
     """Alg. 1-3 with Python dicts and lists, following docs/backends.md literally."""
 
-    def __init__(self, res, p_init=0.5, n_lim=-1, d_in=-1.0, d_inf=0.2, inf_range=-1.0, p_free=0.4):
-        self.res = res
+    def __init__(self, res, p_init=0.5, n_lim=-1, d_in=-1.0, d_inf=0.2, inf_range=-1.0, p_free=0.4, discretize=1):
+        self.res, self.discretize = res, discretize
         self.p = dict(p_init=p_init, n_lim=n_lim, d_in=d_in, d_inf=d_inf, inf_range=inf_range)
         self.p_free = p_free
         self.rec: dict[tuple, dict] = {}
@@ -62,6 +63,8 @@ class ReferenceMap:
         if p["d_in"] >= 0:
             d = np.linalg.norm(points.astype(np.float64) - origin.astype(np.float64), axis=1)
             points = points[d <= p["d_in"]]
+        if self.discretize:
+            points = discrete_points(points, self.res)
         free, occ = scan_update_sets(points, origin, self.res)
         keys = sorted(free | occ, key=lambda k: int(morton_encode(np.array([k]))[0]))
         touched, changed = [], []
@@ -152,6 +155,7 @@ def check(m: HashVoxelMap, ref: ReferenceMap):
     dict(n_lim=-1, d_inf=0.2),
     dict(n_lim=60, d_inf=0.4),
     dict(n_lim=200, d_inf=0.2, d_in=3.0, p_init=0.6),
+    dict(n_lim=200, d_inf=0.2, d_in=3.0, p_init=0.6, discretize=0),
     dict(n_lim=-1, d_inf=0.3, inf_range=2.5),
 ])
 def test_every_scan_equals_brute_force(kw):
@@ -228,22 +232,25 @@ def test_snapshot_round_trip(tmp_path):
     assert np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)
 
 
-@pytest.mark.parametrize("max_range, set_size", [(-1.0, None), (2.5, None), (-1.0, 64)])
-def test_filtered_ray_casting_keeps_exactly_the_updates_that_matter(max_range, set_size):
+@pytest.mark.parametrize("max_range, set_size, discretize", [(-1.0, None, 1), (2.5, None, 1), (-1.0, 64, 1),
+                                                             (-1.0, None, 0), (2.5, None, 0)])
+def test_filtered_ray_casting_keeps_exactly_the_updates_that_matter(max_range, set_size, discretize):
     """The hash map casts rays against its own brick table; what it keeps must equal OctoMap's
-    full update set (scan_updates) cut down to the hits and the misses on occupancy-map voxels,
-    with scans big enough to take the two-thread path and a max range that cuts rays. With
+    full update set (scan_updates; of the scan's voxel centres with discretize, as OctoMap's
+    computeDiscreteUpdate) cut down to the hits and the misses on occupancy-map voxels, with
+    scans big enough to take the two-thread path and a max range that cuts rays. With
     de-duplicating sets too small at first, the casting grows them and starts over."""
     from voxtool.maps.octree import SMALL_SCAN, scan_updates
 
     params = MapParams(0.1, max_range=max_range)
-    m = HashVoxelMap(params, S, n_lim=3000, d_inf=0.2)
+    m = HashVoxelMap(params, S, n_lim=3000, d_inf=0.2, discretize=discretize)
     if set_size is not None:
         m._set_size = set_size
     kept_misses = 0
-    for i, scan in enumerate(world_scans(6, SMALL_SCAN + 500, seed=40)):
+    for i, scan in enumerate(world_scans(6, 2 * SMALL_SCAN, seed=40)):  # > SMALL_SCAN voxels too
         scan.index = i
-        full, _, _ = scan_updates(scan, params)
+        rays = Scan(discrete_points(scan.points, 0.1), scan.origin) if discretize else scan
+        full, _, _ = scan_updates(rays, params)
         in_map = m.leaves().codes
         keep = (full & 1 == 1) | np.isin(full >> 1, in_map)
         got, _ = m._trace(m.prepare(scan).scan)
@@ -376,3 +383,39 @@ def test_a_child_forked_after_a_parallel_cast_casts_the_same_map():
     if p.exitcode is None:
         p.kill()
     assert p.exitcode == 0
+
+
+def test_discretized_rays_match_octomap_discretize():
+    """discretize=1 casts OctoMap's computeDiscreteUpdate rays (insertPointCloud with
+    discretize=true): an octree fed the kernel's voxel centres equals the real OctoMap's tree
+    built with discretize, leaf for leaf, and the centres equal the literal reference's."""
+    pyoctomap = pytest.importorskip("pyoctomap")
+    from test_octree import finest_values
+
+    from voxtool.maps.octree import OctreeMap
+
+    tree = pyoctomap.OcTree(0.1)
+    ours = OctreeMap(MapParams(0.1), S)
+    m = HashVoxelMap(MapParams(0.1), S)
+    for scan in world_scans(4, 1500, seed=9):
+        centres = m._discretized(scan)
+        np.testing.assert_array_equal(centres.points, discrete_points(scan.points, 0.1))
+        assert centres.points.shape[0] < scan.points.shape[0]  # points shared end voxels
+        ours.integrate(centres)
+        tree.insertPointCloud(scan.points.astype(np.float64), scan.origin.astype(np.float64), discretize=True)
+    values = finest_values(ours)
+    count = 0
+    for leaf in tree.begin_leafs():
+        c = np.array(leaf.getCoordinate())
+        for key in _finest_keys(c, leaf.getSize(), 0.1):
+            assert values.pop(key) == pytest.approx(tree.search(c).getLogOdds(), abs=0)
+            count += 1
+    assert count > 1000 and not values
+
+
+def _finest_keys(centre, size, res):
+    """The finest voxels of an OctoMap leaf (a pruned leaf covers several)."""
+    n = int(round(size / res))
+    lo = np.floor((centre - size / 2) / res + 0.5).astype(np.int64) + 32768
+    g = np.arange(n)
+    return [(int(lo[0] + i), int(lo[1] + j), int(lo[2] + k)) for i in g for j in g for k in g]

@@ -140,7 +140,7 @@ def backend_options(func):
         click.option("--param", "backend_params", multiple=True, metavar="KEY=VALUE",
                      help="Backend option, e.g. tau=4, buckets=65536, threads=2, order=morton (octocache); "
                           "pool_blocks=4096, map_size=40 (tiny); n_lim=50000, d_inf=0.2, inf_range=8, d_in=30, ttl=5, "
-                          "p_init=0.5 (hashmap)."),
+                          "p_init=0.5, discretize=1 (hashmap)."),
         click.option("--pool-blocks", type=int, help="tiny: memory budget in blocks of 8 nodes (<= 4096: 16-bit nodes)."),
         click.option("--map-size", type=float, help="tiny: edge of the cubic map extent in metres (sets the depth)."),
         click.option("--schedule", multiple=True, metavar="SCAN:KEY=VALUE",

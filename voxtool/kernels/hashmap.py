@@ -249,6 +249,29 @@ def _set_add(seen, slots, n, update):
         s = (s + 1) & mask
 
 
+@njit(cache=True, nogil=True)
+def discretize(points, resolution, seen, slots, out):
+    """OctoMap's computeDiscreteUpdate: one point per distinct end voxel, the voxel's centre
+    (keyToCoord: float32 of (key - 32768 + 0.5) x resolution), in first-occurrence order, into
+    `out` (room for every point). `seen` (all EMPTY, left so) needs room for 2 x points.
+    Returns the count."""
+    res_factor = 1.0 / resolution
+    n = 0
+    for i in range(points.shape[0]):
+        kx = _coord_key(points[i, 0], res_factor)
+        ky = _coord_key(points[i, 1], res_factor)
+        kz = _coord_key(points[i, 2], res_factor)
+        m = _set_add(seen, slots, n, morton3(kx, ky, kz) << 1)
+        if m > n:
+            out[n, 0] = np.float32((np.float64(kx - 32768) + 0.5) * resolution)
+            out[n, 1] = np.float32((np.float64(ky - 32768) + 0.5) * resolution)
+            out[n, 2] = np.float32((np.float64(kz - 32768) + 0.5) * resolution)
+            n = m
+    for j in range(n):
+        seen[slots[j]] = EMPTY
+    return n
+
+
 @njit(cache=True, inline="always")
 def ray_setup(points, i, origin, okx, oky, okz, resolution, max_range):
     """Ray i of a scan from `origin` (key okx, oky, okz) as OctoMap casts it: computeUpdate's

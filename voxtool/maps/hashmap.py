@@ -62,8 +62,13 @@ class HashVoxelMap:
 
     def __init__(self, params: MapParams, sensor: SensorModel, p_init: float = 0.5, n_lim: int = -1,
                  d_in: float = -1.0, d_inf: float = 0.2, inf_range: float = -1.0, ttl: float = -1.0,
-                 p_free: float = 0.4, schedule: list | None = None, rate_hz: float = 10.0) -> None:
+                 p_free: float = 0.4, schedule: list | None = None, rate_hz: float = 10.0,
+                 discretize: int = 1) -> None:
         self.params, self.sensor = params, sensor
+        if discretize not in (0, 1):
+            raise ParameterError(f"discretize={discretize} must be 1 (one ray per end voxel, to its centre: the "
+                                 "paper, OctoMap's discretize) or 0 (one ray per point, OctoMap's default)")
+        self.discretize = discretize
         if not 0 < p_free < sensor.occupancy_threshold:
             raise ParameterError(f"p_free={p_free} must lie between 0 and the occupancy threshold "
                                  f"{sensor.occupancy_threshold}")
@@ -201,10 +206,23 @@ class HashVoxelMap:
         return PreparedScan(np.empty(0, np.int64), 0, 0.0, int(scan.points.shape[0]), merged, stamp_ns=stamp,
                             origin=scan.origin, scan=scan, index=scan.index)
 
+    def _discretized(self, scan: Scan) -> Scan:
+        """The scan with one point per distinct end voxel, at its centre (OctoMap's
+        computeDiscreteUpdate; the paper casts one ray per voxel of the input)."""
+        n = scan.points.shape[0]
+        size = 1 << max(4, int(4 * n - 1).bit_length())  # room for 2 x points: the set never fills
+        centres = np.empty((n, 3), np.float32)
+        k = K.discretize(scan.points, self.params.resolution, np.full(size, K.EMPTY, np.int64),
+                         np.empty(size // 2 + 1, np.int64), centres)
+        return Scan(centres[:k], scan.origin, scan.index, scan.stamp_ns, scan.source)
+
     def _trace(self, scan: Scan) -> tuple[np.ndarray, int]:
         """The scan's Morton-sorted (code << 1 | hit) updates that can change this map: every
         endpoint voxel, and the passed-through voxels that may be in the occupancy map; each
-        voxel once, a hit winning over a miss (the one-update-per-voxel rule of OctoMap)."""
+        voxel once, a hit winning over a miss (the one-update-per-voxel rule of OctoMap). With
+        `discretize`, the rays go to the centres of the distinct end voxels."""
+        if self.discretize and scan.points.shape[0]:
+            scan = self._discretized(scan)
         n = scan.points.shape[0]
         if n == 0:
             return np.empty(0, np.int64), 0
@@ -398,7 +416,8 @@ class HashVoxelMap:
                   self.ipool, self.imeta)
 
     def extra_meta(self) -> dict[str, Any]:
-        return {k: self.values[k] for k in ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")} | {"p_free": self.p_free}
+        return {k: self.values[k] for k in ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")} | {
+            "p_free": self.p_free, "discretize": self.discretize}
 
     def extra_stats(self) -> dict[str, Any]:
         out: dict[str, Any] = {"n_occ": int(self.meta[K.M_HSIZE]), "n_inf": self.n_inflated()}
