@@ -359,30 +359,12 @@ def test_a_refused_parameter_change_leaves_the_parameters_as_they_were():
 def test_a_child_forked_after_a_parallel_cast_casts_the_same_map():
     """GNU OpenMP is not fork-safe: numba ends a forked child that launches a parallel region
     after its parent did. Such a child must cast on its own thread and build the same map."""
-    import multiprocessing
-    import os
+    from test_octree import forked_child_builds_the_same_map
 
     from voxtool.maps.octree import SMALL_SCAN
 
-    scans = world_scans(3, SMALL_SCAN + 500, seed=7)
-    parent = HashVoxelMap(MapParams(0.1), S, n_lim=2000, d_inf=0.2)
-    for scan in scans:
-        parent.integrate(scan)  # big scans: the two-thread (parallel region) path
-    want = parent.leaves()
-
-    def child():
-        m = HashVoxelMap(MapParams(0.1), S, n_lim=2000, d_inf=0.2)
-        for scan in scans:
-            m.integrate(scan)
-        got = m.leaves()
-        os._exit(0 if np.array_equal(got.codes, want.codes) and np.array_equal(got.values, want.values) else 3)
-
-    p = multiprocessing.get_context("fork").Process(target=child)
-    p.start()
-    p.join(120)
-    if p.exitcode is None:
-        p.kill()
-    assert p.exitcode == 0
+    scans = world_scans(3, 2 * SMALL_SCAN, seed=7)
+    assert forked_child_builds_the_same_map(lambda: HashVoxelMap(MapParams(0.1), S, n_lim=2000, d_inf=0.2), scans) == 0
 
 
 def test_discretized_rays_match_octomap_discretize():
