@@ -179,6 +179,7 @@ class HashVoxelMap:
         # the table rebuilds run only when a table grows: load them now, not in a timed scan
         K.rehash(probe.tab, probe.rec, int(probe.meta[K.M_NEXT]))
         probe.query(np.zeros(1, np.int64))
+        probe.discretize = 0  # SMALL_SCAN rays (to one voxel): the two-thread path
         probe._trace(Scan(np.tile(np.array([[1.0, 0.5, 0.25]], np.float32), (SMALL_SCAN, 1)), np.zeros(3, np.float32)))
         K.brick_rehash(probe.bkeys, probe.bmask, *K.new_bricks(probe.bkeys.shape[0]))
 
