@@ -5,12 +5,13 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
 from voxtool.codec.log import PacketLogWriter
-from voxtool.codec.packet import FREE, OCCUPIED, UNKNOWN, encode_packet, keyframe_packet
+from voxtool.codec.packet import FREE, OCCUPIED, UNKNOWN, encode_packet, keyframe_packet, occupied_frame
 from voxtool.errors import ParameterError
 from voxtool.keys import morton_decode
 from voxtool.maps.base import MapBackend, removed_voxels, update_codes
@@ -126,7 +127,7 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
     rep = EncodeReport()
     pend_codes = np.zeros(0, np.int64)
     pend_states = np.zeros(0, np.uint8)
-    frames: list[tuple[int, np.ndarray]] = []
+    frames: deque = deque(maxlen=opts.ring)  # the ring of `occupied` frames, each encoded once
     map_lo = np.full(3, 65535, np.int64)
     map_hi = np.zeros(3, np.int64)
     seq = 0
@@ -150,7 +151,7 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
                 keys = morton_decode(pend_codes[a:b]).astype(np.int64)
                 box = (map_lo, map_hi - map_lo + 1) if opts.scheme == "racer" else None
                 blob = encode_packet(opts.robot, seq, stamp, opts.scheme, opts.codec, res, keys, pend_states[a:b],
-                                     box=box, frames=frames[-opts.ring:] if opts.scheme == "occupied" else None)
+                                     box=box, frames=list(frames) if opts.scheme == "occupied" else None)
                 if opts.scheme in ("hilbert", "nested") and keys.shape[0]:
                     rep.encoded_cells += int(np.prod(keys.max(axis=0) - keys.min(axis=0) + 1))
                 rep.time_encode_s += time.perf_counter() - t0
@@ -195,8 +196,8 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
                     map_lo = np.minimum(map_lo, ck.min(axis=0))
                     map_hi = np.maximum(map_hi, ck.max(axis=0))
                 new_occ = codes[changed & (after == OCCUPIED)]
-                frames.append((rep.scans, morton_decode(new_occ)))
-                frames = frames[-opts.ring:]
+                if opts.scheme == "occupied":
+                    frames.append(occupied_frame(rep.scans, new_occ))
                 pend_codes, pend_states = merge_latest(pend_codes, pend_states, codes[changed], after[changed])
                 rep.scans += 1
                 rep.raw_sensor_bytes += scan.raw_bytes

@@ -121,15 +121,25 @@ def _cell_order(scheme: str, dims) -> np.ndarray | None:
     return None  # nested: the natural x-fastest order
 
 
+def occupied_frame(fseq: int, codes: np.ndarray) -> bytes:
+    """One frame of an `occupied` payload: frame sequence, voxel count, and the varints of the
+    voxels' Morton codes in increasing order (sorted and de-duplicated here if they are not)."""
+    codes = np.asarray(codes, dtype=np.int64)
+    if codes.shape[0] > 1 and np.any(codes[1:] <= codes[:-1]):
+        codes = np.unique(codes)
+    return struct.pack("<II", fseq, codes.shape[0]) + encode_deltas(codes)
+
+
 def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, resolution: float,
                   keys: np.ndarray, states: np.ndarray, kind: int = KIND_DELTA,
                   box: tuple[np.ndarray, np.ndarray] | None = None,
-                  map_origin=(0.0, 0.0, 0.0), frames: list[tuple[int, np.ndarray]] | None = None) -> bytes:
+                  map_origin=(0.0, 0.0, 0.0), frames: list | None = None) -> bytes:
     """Encode voxels (uint16 keys, states) as one packet.
 
     hilbert/nested: `box` = (min key, dims) defaults to the keys' bounding box; a keyframe must
     give `states` for every cell of the box (keys then ignored, states in nested order).
-    racer: `box` is the map's address space. occupied: `frames` = [(frame seq, keys)]."""
+    racer: `box` is the map's address space. occupied: `frames` = [(frame seq, keys)], or frames
+    occupied_frame() encoded already (a ring buffer encodes each frame once, not once a packet)."""
     if scheme not in SCHEMES or codec not in CODECS:
         raise ValueError(f"unknown scheme/codec {scheme}/{codec}")
     keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
@@ -137,9 +147,10 @@ def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, 
     if scheme == "occupied":
         frames = frames or []
         parts = []
-        for fseq, fkeys in frames:
-            codes = np.unique(morton_encode(np.asarray(fkeys, dtype=np.int64).reshape(-1, 3)))
-            parts.append(struct.pack("<II", fseq, codes.shape[0]) + encode_deltas(codes))
+        for frame in frames:
+            if not isinstance(frame, bytes):
+                frame = occupied_frame(frame[0], morton_encode(np.asarray(frame[1], dtype=np.int64).reshape(-1, 3)))
+            parts.append(frame)
         raw = b"".join(parts)
         lo, dims, count = np.zeros(3, np.int64), np.zeros(3, np.int64), len(frames)
     else:

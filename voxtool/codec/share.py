@@ -15,9 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from voxtool.codec.log import PacketLogWriter, read_log
-from voxtool.codec.packet import decode_packet, encode_packet
+from voxtool.codec.packet import decode_packet, encode_packet, occupied_frame
 from voxtool.errors import ParameterError
-from voxtool.keys import morton_decode
 
 
 class ShareWriter:
@@ -36,7 +35,7 @@ class ShareWriter:
 
     def __call__(self, scan, backend) -> None:
         stamp = scan.stamp_ns if scan.stamp_ns else scan.index * 100_000_000
-        self.ring.append((scan.index, morton_decode(backend.newly_occupied)))
+        self.ring.append(occupied_frame(scan.index, backend.newly_occupied))  # encoded once, sent k times
         blob = encode_packet(self.robot, self.seq, stamp, "occupied", self.codec, self.resolution,
                              np.zeros((0, 3)), np.zeros(0, np.uint8), frames=list(self.ring))
         self.log.write(self.robot, self.seq, stamp, blob)
