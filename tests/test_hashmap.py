@@ -212,15 +212,17 @@ def test_relayed_map_from_shared_frames_holds_the_occupied_voxels():
     assert sent <= got  # every voxel occupied now was shared when it became occupied
 
 
-def test_snapshot_round_trip(tmp_path):
+@pytest.mark.parametrize("discretize", [1, 0])
+def test_snapshot_round_trip(tmp_path, discretize):
     from voxtool.io.mapfile import load_map, save_map
 
-    m = HashVoxelMap(MapParams(0.1), S, n_lim=500, d_inf=0.2)
+    m = HashVoxelMap(MapParams(0.1), S, n_lim=500, d_inf=0.2, discretize=discretize)
     for scan in world_scans(4, 150, seed=12):
         m.integrate(scan)
     save_map(tmp_path / "h.vxm", m, {})
     back, snap = load_map(tmp_path / "h.vxm")
     assert snap.header["backend_params"]["n_lim"] == 500
+    assert back.discretize == discretize  # the rays it casts from here on are the same kind
     a, b = m.leaves(), back.leaves()
     assert np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)
     assert np.array_equal(back.occupied_codes(), m.occupied_codes())
