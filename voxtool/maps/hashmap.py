@@ -91,6 +91,7 @@ class HashVoxelMap:
         self.removed: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.float32))
         self._set_size = 1 << 14  # de-duplicating sets of the ray casting, one per half scan
         self._bufs: tuple[np.ndarray, ...] | None = None
+        self._cell_set: tuple[np.ndarray, np.ndarray] | None = None  # discretize's set and its scratch
         self.newly_occupied: np.ndarray = np.zeros(0, np.int64)
 
     # -- parameters ----------------------------------------------------------------------------
@@ -212,9 +213,11 @@ class HashVoxelMap:
         computeDiscreteUpdate; the paper casts one ray per voxel of the input)."""
         n = scan.points.shape[0]
         size = 1 << max(4, int(4 * n - 1).bit_length())  # room for 2 x points: the set never fills
+        if self._cell_set is None or self._cell_set[0].shape[0] < size:
+            # kept between scans (the kernel leaves it all EMPTY): no per-scan fill of a new set
+            self._cell_set = (np.full(size, K.EMPTY, np.int64), np.empty(size // 2 + 1, np.int64))
         centres = np.empty((n, 3), np.float32)
-        k = K.discretize(scan.points, self.params.resolution, np.full(size, K.EMPTY, np.int64),
-                         np.empty(size // 2 + 1, np.int64), centres)
+        k = K.discretize(scan.points, self.params.resolution, *self._cell_set, centres)
         return Scan(centres[:k], scan.origin, scan.index, scan.stamp_ns, scan.source)
 
     def _trace(self, scan: Scan) -> tuple[np.ndarray, int]:
