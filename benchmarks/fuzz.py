@@ -32,10 +32,11 @@ def seeds() -> dict[str, list[bytes]]:
     from scenes import box_scene, lzf_literal
 
     from voxtool.codec.log import PacketLogWriter
-    from voxtool.codec.packet import KIND_KEYFRAME, encode_packet
+    from voxtool.codec.packet import KIND_KEYFRAME, encode_packet, occupied_frame
     from voxtool.config import MapParams, SensorModel
     from voxtool.io.bt import bt_bytes
     from voxtool.io.snapshot import snapshot_bytes
+    from voxtool.keys import morton_encode
     from voxtool.maps import make_backend
     from voxtool.maps.octree import OctreeMap
     from voxtool.sources.scan import Scan
@@ -65,7 +66,7 @@ def seeds() -> dict[str, list[bytes]]:
     keys = np.array([[5, 5, 5], [6, 7, 8], [9, 9, 9]])
     st = np.array([0, 1, 2], np.uint8)
     packets = [encode_packet("r", 1, 2, s, c, 0.1, keys, st, box=(np.array([4, 4, 4]), np.array([8, 8, 8])) if s == "racer" else None,
-                             frames=[(1, keys)] if s == "occupied" else None)
+                             frames=[occupied_frame(1, morton_encode(keys))] if s == "occupied" else None)
                for s in ("hilbert", "nested", "racer", "occupied") for c in ("none", "zstd", "zlib")]
     packets.append(encode_packet("r", 0, 0, "hilbert", "zstd", 0.1, keys[:0], np.array([0, 1, 2, 0, 1, 1, 0, 2], np.uint8),
                                  kind=KIND_KEYFRAME, box=(np.array([1, 1, 1]), np.array([2, 2, 2]))))

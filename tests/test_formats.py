@@ -59,7 +59,8 @@ PACKETS = sorted((Path(__file__).resolve().parents[1] / "formats" / "vectors").g
 
 @pytest.mark.parametrize("vector", PACKETS, ids=[p.stem for p in PACKETS])
 def test_packet_golden_vector_both_directions(vector):
-    from voxtool.codec.packet import decode_packet, encode_packet
+    from voxtool.codec.packet import decode_packet, encode_packet, occupied_frame
+    from voxtool.keys import morton_encode
 
     spec = json.loads(vector.with_suffix(".json").read_text())
     p = decode_packet(vector.read_bytes())
@@ -73,7 +74,7 @@ def test_packet_golden_vector_both_directions(vector):
     if "box" in kw:
         kw["box"] = tuple(np.array(v) for v in kw["box"])
     if "frames" in kw:
-        kw["frames"] = [(f, np.array(k)) for f, k in kw["frames"]]
+        kw["frames"] = [occupied_frame(f, morton_encode(np.array(k, dtype=np.int64).reshape(-1, 3))) for f, k in kw["frames"]]
     blob = encode_packet(p.robot, p.seq, p.stamp_ns, codec="none", resolution=0.1, **kw)
     assert blob == vector.read_bytes()
 

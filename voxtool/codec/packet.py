@@ -22,7 +22,7 @@ import zstandard
 from voxtool.codec.varint import decode_deltas, encode_deltas
 from voxtool.compression import zstd_exact
 from voxtool.errors import FormatError
-from voxtool.keys import morton_decode, morton_encode
+from voxtool.keys import morton_decode
 
 MAGIC = b"VXPK"
 VERSION = 2  # 2: `occupied` frames as varint Morton deltas; version-1 packets still decode
@@ -133,25 +133,20 @@ def occupied_frame(fseq: int, codes: np.ndarray) -> bytes:
 def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, resolution: float,
                   keys: np.ndarray, states: np.ndarray, kind: int = KIND_DELTA,
                   box: tuple[np.ndarray, np.ndarray] | None = None,
-                  map_origin=(0.0, 0.0, 0.0), frames: list | None = None) -> bytes:
+                  map_origin=(0.0, 0.0, 0.0), frames: list[bytes] | None = None) -> bytes:
     """Encode voxels (uint16 keys, states) as one packet.
 
     hilbert/nested: `box` = (min key, dims) defaults to the keys' bounding box; a keyframe must
     give `states` for every cell of the box (keys then ignored, states in nested order).
-    racer: `box` is the map's address space. occupied: `frames` = [(frame seq, keys)], or frames
-    occupied_frame() encoded already (a ring buffer encodes each frame once, not once a packet)."""
+    racer: `box` is the map's address space. occupied: `frames` = the ring's frames, each
+    encoded by occupied_frame() (once: a frame rides in k packets)."""
     if scheme not in SCHEMES or codec not in CODECS:
         raise ValueError(f"unknown scheme/codec {scheme}/{codec}")
     keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
     states = np.asarray(states, dtype=np.uint8)
     if scheme == "occupied":
         frames = frames or []
-        parts = []
-        for frame in frames:
-            if not isinstance(frame, bytes):
-                frame = occupied_frame(frame[0], morton_encode(np.asarray(frame[1], dtype=np.int64).reshape(-1, 3)))
-            parts.append(frame)
-        raw = b"".join(parts)
+        raw = b"".join(frames)
         lo, dims, count = np.zeros(3, np.int64), np.zeros(3, np.int64), len(frames)
     else:
         if box is None:
