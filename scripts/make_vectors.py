@@ -40,10 +40,13 @@ def main() -> None:
 
 
 def packets() -> None:
-    from voxtool.codec.packet import KIND_KEYFRAME, decode_packet, encode_packet
+    from voxtool.codec.packet import KIND_KEYFRAME, decode_packet, encode_packet, occupied_frame
+    from voxtool.keys import morton_encode
 
     keys = np.array([[32768, 32768, 32768], [32769, 32768, 32768], [32768, 32770, 32769]])
     states = np.array([0, 1, 2], np.uint8)
+    line = np.array([[32768 + i, 32768 + i // 2, 32770] for i in range(7)] + [[32770, 32771, 32771]])
+    line_states = np.array([0, 0, 0, 0, 0, 0, 1, 2], np.uint8)
     cases = {
         "packet_hilbert": dict(scheme="hilbert", keys=keys, states=states),
         "packet_nested": dict(scheme="nested", keys=keys, states=states),
@@ -53,9 +56,17 @@ def packets() -> None:
                                 kind=KIND_KEYFRAME, box=(np.array([100, 200, 300]), np.array([2, 2, 2]))),
         "packet_occupied": dict(scheme="occupied", keys=keys[:0], states=states[:0],
                                 frames=[(7, keys[:2]), (8, keys[2:])]),
+        # cm: a short line of newly free voxels ending in a hit, one voxel gone unknown
+        "packet_cm": dict(scheme="nested", codec="cm", keys=line, states=line_states),
+        "packet_cm_keyframe": dict(scheme="nested", codec="cm", keys=keys[:0],
+                                   states=np.array([0, 1, 2, 0, 1, 1, 0, 2, 2, 2, 0, 0], np.uint8), kind=KIND_KEYFRAME,
+                                   box=(np.array([100, 200, 300]), np.array([3, 2, 2]))),
     }
     for name, kw in cases.items():
-        blob = encode_packet("golden", 3, 1_700_000_000_000_000_000, codec="none", resolution=0.1, **kw)
+        args = {"codec": "none", **kw}
+        if "frames" in kw:  # encode_packet takes each frame as occupied_frame() bytes
+            args["frames"] = [occupied_frame(f, morton_encode(k)) for f, k in kw["frames"]]
+        blob = encode_packet("golden", 3, 1_700_000_000_000_000_000, resolution=0.1, **args)
         p = decode_packet(blob)
         desc = {"encode": {k: (v.tolist() if isinstance(v, np.ndarray) else
                                [x.tolist() for x in v] if k == "box" else

@@ -75,12 +75,13 @@ def test_packet_golden_vector_both_directions(vector):
         kw["box"] = tuple(np.array(v) for v in kw["box"])
     if "frames" in kw:
         kw["frames"] = [occupied_frame(f, morton_encode(np.array(k, dtype=np.int64).reshape(-1, 3))) for f, k in kw["frames"]]
-    blob = encode_packet(p.robot, p.seq, p.stamp_ns, codec="none", resolution=0.1, **kw)
+    blob = encode_packet(p.robot, p.seq, p.stamp_ns, resolution=0.1, **{"codec": "none", **kw})
     assert blob == vector.read_bytes()
 
 
 def test_packet_vectors_exist():
-    assert len(PACKETS) == 5
+    assert {p.stem for p in PACKETS} == {f"packet_{k}" for k in
+                                         ("hilbert", "nested", "racer", "keyframe", "occupied", "cm", "cm_keyframe")}
 
 
 def test_version_1_packets_still_decode():

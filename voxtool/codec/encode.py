@@ -35,6 +35,8 @@ class EncodeOptions:
             raise ParameterError("--max-changes, --max-interval, --ring and --rate must be positive")
         if self.keyframe_every < 0:
             raise ParameterError(f"--keyframe-every {self.keyframe_every} must be >= 0 (0: no keyframes)")
+        if self.codec == "cm" and self.scheme != "nested":
+            raise ParameterError(f"--codec cm codes boxes in x-y-z order: use it with --scheme nested, not {self.scheme}")
         if not self.robot or len(self.robot.encode()) > 16:
             raise ParameterError(f"robot id '{self.robot}' must be 1..16 bytes")
 
@@ -48,7 +50,8 @@ def voxel_states(values: np.ndarray, threshold_log: float) -> np.ndarray:
 
 def split_changes(codes: np.ndarray, max_count: int, density: int = 256) -> list[tuple[int, int]]:
     """Split Morton-sorted changed voxels into runs of at most `max_count` whose bounding box
-    holds at most max(density * count, 2^18) cells, cutting at octree node boundaries.
+    holds at most max(density * count, 2^18) cells (density 0: no volume limit), cutting at
+    octree node boundaries.
 
     Our choice (formats/packet.md): one box over a long-range LiDAR scan's changes spans the
     whole sensor range and is mostly 'unchanged' cells; octree-aligned runs keep boxes compact."""
@@ -63,7 +66,7 @@ def split_changes(codes: np.ndarray, max_count: int, density: int = 256) -> list
         if n <= max_count:
             keys = morton_decode(codes[a:b]).astype(np.int64) if n > 2 else k
             volume = int(np.prod(keys.max(axis=0) - keys.min(axis=0) + 1))
-            if volume <= max(density * n, 1 << 18) or n == 1:
+            if density <= 0 or volume <= max(density * n, 1 << 18) or n == 1:
                 out.append((a, b))
                 continue
         # cut where the highest differing Morton bit of the run's ends flips
@@ -134,13 +137,18 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
     last_emit = None
     period = int(1e9 / opts.rate_hz)
     backend.warm_up()
+    if opts.codec == "cm":
+        from voxtool.codec.cm import warm_up
+
+        warm_up()
 
     with PacketLogWriter(output) as log:
 
         def emit(stamp: int) -> None:
             nonlocal seq, pend_codes, pend_states
             if opts.scheme in ("hilbert", "nested"):
-                runs = split_changes(pend_codes, opts.max_changes)
+                # cm spends next to nothing on empty cells (docs/packets.md): boxes split by count only
+                runs = split_changes(pend_codes, opts.max_changes, density=0 if opts.codec == "cm" else 256)
             elif opts.scheme == "racer":
                 runs = [(a, min(a + opts.max_changes, pend_codes.shape[0]))
                         for a in range(0, max(pend_codes.shape[0], 1), opts.max_changes)]

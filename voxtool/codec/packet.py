@@ -2,7 +2,8 @@
 
 A packet = 96-byte little-endian header + payload (compressed per `codec`). Schemes:
   hilbert / nested  box of changed voxels, 2 bits per cell (0 free, 1 occupied, 2 unknown,
-                    3 unchanged) in Hilbert or x-fastest nested order, 4 cells per byte
+                    3 unchanged) in Hilbert or x-fastest nested order, 4 cells per byte; with
+                    codec `cm` (nested only) the cells are range-coded by a 3D context model
   racer             changed voxels as addresses (linear index in the map box, minimum whole byte
                     width) + 2-bit states
   occupied          newly occupied voxels of the last k frames (ring buffer), as varints of the
@@ -28,12 +29,15 @@ MAGIC = b"VXPK"
 VERSION = 2  # 2: `occupied` frames as varint Morton deltas; version-1 packets still decode
 READABLE_VERSIONS = (1, 2)
 SCHEMES = ("hilbert", "nested", "racer", "occupied")
-CODECS = ("none", "zstd", "zlib")
+CODECS = ("none", "zstd", "zlib", "cm")  # cm: voxtool.codec.cm, box schemes in nested order
 KIND_DELTA, KIND_KEYFRAME = 0, 1
 FREE, OCCUPIED, UNKNOWN, UNCHANGED = 0, 1, 2, 3
 HEADER = struct.Struct("<4sBBBB16sIqd3d3H3HIIII")
 MAX_CELLS = 1 << 31  # a box larger than this is refused before anything is allocated
 MAX_RAW = 1 << 30  # 1 GiB of uncompressed payload at most
+# a cm decision never costs less than -log2(1 - 16/65536) = 3.5e-4 bits, so a stream of L bytes
+# holds at most ~22,700 L cells: 32,768 per byte leaves a margin (formats/packet.md)
+CM_CELLS_PER_BYTE = 32768
 ZSTD_LEVEL = 9  # bytes vs speed on the real streams: docs/packets.md
 ZLIB_LEVEL = 6
 
@@ -142,6 +146,8 @@ def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, 
     encoded by occupied_frame() (once: a frame rides in k packets)."""
     if scheme not in SCHEMES or codec not in CODECS:
         raise ValueError(f"unknown scheme/codec {scheme}/{codec}")
+    if codec == "cm" and scheme != "nested":
+        raise ValueError(f"codec cm codes a box in x-fastest order: scheme {scheme} cannot use it (use nested)")
     keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
     states = np.asarray(states, dtype=np.uint8)
     if scheme == "occupied":
@@ -171,13 +177,26 @@ def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, 
                 grid = np.full(cells, UNCHANGED, dtype=np.uint8)
                 rel = keys - lo
                 grid[rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])] = states
+            count = int(keys.shape[0]) if kind == KIND_DELTA else cells
+            if codec == "cm":
+                from voxtool.codec.cm import compress_box
+
+                # cm codes the cells themselves; the header still declares the 2-bit payload's size
+                stored = compress_box(grid, dims, UNCHANGED if kind == KIND_DELTA else UNKNOWN)
+                return _assemble(robot, seq, stamp_ns, scheme, codec, kind, resolution, map_origin, lo, dims, count,
+                                 (cells + 3) // 4, stored)
             order = _cell_order(scheme, dims)
             raw = pack_2bit(grid[order] if order is not None else grid)
-            count = int(keys.shape[0]) if kind == KIND_DELTA else cells
-    stored = _compress(raw, codec)
+    return _assemble(robot, seq, stamp_ns, scheme, codec, kind, resolution, map_origin, lo, dims, count, len(raw),
+                     _compress(raw, codec))
+
+
+def _assemble(robot, seq, stamp_ns, scheme, codec, kind, resolution, map_origin, lo, dims, count, raw_size,
+              stored) -> bytes:
+    """Header (CRC over the header and the stored payload) + stored payload."""
     name = robot.encode()[:16]
     head = HEADER.pack(MAGIC, VERSION, kind, SCHEMES.index(scheme), CODECS.index(codec), name, seq, stamp_ns,
-                       resolution, *map(float, map_origin), *map(int, lo), *map(int, dims), count, len(raw),
+                       resolution, *map(float, map_origin), *map(int, lo), *map(int, dims), count, raw_size,
                        len(stored), 0)
     crc = zlib.crc32(stored, zlib.crc32(head[:-4]))
     return head[:-4] + struct.pack("<I", crc) + stored
@@ -231,9 +250,20 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
         width = address_width(dims_a)
         if raw_size != count * width + (count + 3) // 4 or count > cells:
             raise FormatError(f"{where}: {count} RACER entries do not fit {raw_size} bytes")
-    raw = _decompress(blob[HEADER.size:], codec, raw_size, where)
     frames: list[tuple[int, np.ndarray]] = []
-    if scheme in ("hilbert", "nested"):
+    if codec == "cm":
+        if scheme != "nested":
+            raise FormatError(f"{where}: codec cm with scheme {scheme} (cm codes nested boxes only)")
+        if cells > CM_CELLS_PER_BYTE * (stored_size + 8):
+            # every cell costs the range coder a minimum fraction of a bit: refuse a box that a
+            # stream this short cannot hold before allocating or decoding anything
+            raise FormatError(f"{where}: a cm stream of {stored_size} bytes cannot hold a box of {cells} cells")
+        from voxtool.codec.cm import decompress_box
+
+        background = UNCHANGED if kind == KIND_DELTA else UNKNOWN
+        grid = decompress_box(blob[HEADER.size:], dims_a, background, where)
+    elif scheme in ("hilbert", "nested"):
+        raw = _decompress(blob[HEADER.size:], codec, raw_size, where)
         codes = unpack_2bit(raw, cells)
         order = _cell_order(scheme, dims_a)
         grid = np.empty(cells, dtype=np.uint8)
@@ -241,6 +271,9 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
             grid[order] = codes
         else:
             grid = codes
+    else:
+        raw = _decompress(blob[HEADER.size:], codec, raw_size, where)
+    if scheme in ("hilbert", "nested"):
         if kind == KIND_KEYFRAME and np.any(grid == UNCHANGED):
             raise FormatError(f"{where}: keyframe holds 'unchanged' cells")
         idx = np.flatnonzero(grid != UNCHANGED)

@@ -65,7 +65,9 @@ def _keyframe(robot: str, packets: list, upto: int) -> bytes:
     """Full-state keyframe of a robot's own map after its packets 0..upto."""
     own = fuse([], packets=iter(packets[: upto + 1]))
     last = packets[upto]
-    return keyframe_packet(robot, upto, last.stamp_ns, "hilbert", "zstd", last.resolution, own.codes, own.states)
+    # in the robot's own box coding when it has one (cm keyframes are smaller), else hilbert/zstd
+    scheme, codec = (last.scheme, last.codec) if last.scheme in ("hilbert", "nested") else ("hilbert", "zstd")
+    return keyframe_packet(robot, upto, last.stamp_ns, scheme, codec, last.resolution, own.codes, own.states)
 
 
 def simulate(paths: list[Path], loss: float = 0.3, seed: int = 0, extrinsics: dict[str, Extrinsic] | None = None,
