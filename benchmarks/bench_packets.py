@@ -1,7 +1,7 @@
 """Map-change packet bandwidth: the paper's Fig. 5 sweep and real streams, per scheme and codec.
 
     python benchmarks/bench_packets.py fig5 [--samples 10]        # synthetic OGMs, hilbert vs RACER bytes
-    python benchmarks/bench_packets.py streams [--data ../shared/data]  # encode real streams, bandwidth table
+    python benchmarks/bench_packets.py streams [--pcd] [--data ../shared/data]  # real streams, bandwidth table
     python benchmarks/bench_packets.py intervals                  # quick_shack: saving vs packet interval t
     python benchmarks/bench_packets.py throughput                 # encode/decode cells per second
     python benchmarks/bench_packets.py split                      # one stream as two robots: fusion, resend
@@ -39,26 +39,32 @@ def fig5(samples: int) -> dict:
         width = address_width(dims)
         for ratio in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 0.5):
             changed = max(1, int(round(ratio * cells)))
-            sizes = {"zlib": [], "zstd": []}
+            sizes = {("hilbert", "zlib"): [], ("hilbert", "zstd"): [], ("nested", "cm"): []}
             for _ in range(samples):
                 idx = rng.choice(cells, changed, replace=False)
                 keys = np.stack([idx % dims[0], (idx // dims[0]) % dims[1], idx // (dims[0] * dims[1])], axis=1) + 1000
                 states = (rng.random(changed) < 0.5).astype(np.uint8)
-                for codec in sizes:
-                    sizes[codec].append(len(encode_packet("r", 0, 0, "hilbert", codec, 0.1, keys, states,
-                                                          box=(np.full(3, 1000), dims))))
+                for scheme, codec in sizes:
+                    sizes[scheme, codec].append(len(encode_packet("r", 0, 0, scheme, codec, 0.1, keys, states,
+                                                                  box=(np.full(3, 1000), dims))))
             racer = changed * width
             rows.append({"ogm_voxels": cells, "changed_ratio": ratio, "changed": changed, "racer_bytes": racer,
-                         "hilbert_zlib_bytes": float(np.mean(sizes["zlib"])), "hilbert_zstd_bytes": float(np.mean(sizes["zstd"])),
-                         "racer_over_hilbert_zlib": round(racer / np.mean(sizes["zlib"]), 3)})
-    print(f"{'OGM voxels':>10} {'ratio':>7} {'changed':>9} {'RACER B':>10} {'hilbert zlib B':>14} {'hilbert zstd B':>14} {'RACER/ours':>10}")
+                         "hilbert_zlib_bytes": float(np.mean(sizes["hilbert", "zlib"])),
+                         "hilbert_zstd_bytes": float(np.mean(sizes["hilbert", "zstd"])),
+                         "nested_cm_bytes": float(np.mean(sizes["nested", "cm"])),
+                         "racer_over_hilbert_zlib": round(racer / np.mean(sizes["hilbert", "zlib"]), 3)})
+    print(f"{'OGM voxels':>10} {'ratio':>7} {'changed':>9} {'RACER B':>10} {'hilbert zlib B':>14} {'hilbert zstd B':>14} "
+          f"{'nested cm B':>12} {'RACER/ours':>10}")
     for r in rows:
         print(f"{r['ogm_voxels']:>10} {r['changed_ratio']:>7g} {r['changed']:>9} {r['racer_bytes']:>10} "
-              f"{r['hilbert_zlib_bytes']:>14.0f} {r['hilbert_zstd_bytes']:>14.0f} {r['racer_over_hilbert_zlib']:>10.2f}")
+              f"{r['hilbert_zlib_bytes']:>14.0f} {r['hilbert_zstd_bytes']:>14.0f} {r['nested_cm_bytes']:>12.0f} "
+              f"{r['racer_over_hilbert_zlib']:>10.2f}")
     return {"samples": samples, "rows": rows}
 
 
 STREAMS = [("quick_shack", "quick_shack/quick_shack.mcap", 0.1), ("kaist03", "kaist03/kaist03_21scans.mcap", 0.2)]
+# the same scans as PCD directories (VIEWPOINT poses, no stamps: 10 Hz assumed), `streams --pcd`
+PCD_STREAMS = [("quick_shack/pcd", "quick_shack/pcd", 0.1), ("kaist03/pcd", "kaist03/pcd", 0.2)]
 # the paper's Table I pairs each resolution with a sensing range: 0.1 m with 7 m, 0.2 m with 20 m
 PAPER_RANGE = {0.1: 7.0, 0.2: 20.0}
 # RACER's own message (swarm_exploration/plan_env/msg/ChunkData.msg: uint32[] voxel_adrs, uint8[]
@@ -84,16 +90,17 @@ def racer_chunk_bandwidth(log: Path) -> dict:
     return _bandwidth(np.array(stamps), np.array(sizes), span)
 
 
-SETTINGS = [("hilbert", "zstd"), ("hilbert", "zlib"), ("nested", "zstd"), ("nested", "zlib"), ("racer", "none"),
-            ("racer", "zstd"), ("occupied", "zstd")]
+SETTINGS = [("hilbert", "zstd"), ("hilbert", "zlib"), ("nested", "zstd"), ("nested", "zlib"), ("nested", "cm"),
+            ("racer", "none"), ("racer", "zstd"), ("occupied", "zstd")]
 
 
-def streams(data: Path) -> dict:
+def streams(data: Path, pcd: bool = False) -> dict:
     """Each stream with unlimited sensing range and with the range the paper paired with its
     resolution (dataset name@range): long rays make thin, scattered changes across big boxes."""
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for (name, rel, res), max_range in [(st, r) for st in STREAMS for r in (-1.0, PAPER_RANGE[st[2]])]:
+        for (name, rel, res), max_range in [(st, r) for st in (PCD_STREAMS if pcd else STREAMS)
+                                            for r in (-1.0, PAPER_RANGE[st[2]])]:
             src = data / rel
             if not src.exists():
                 print(f"skip {name}: {src} absent", file=sys.stderr)
@@ -101,7 +108,7 @@ def streams(data: Path) -> dict:
             if max_range >= 0:
                 name = f"{name}@{max_range:g}m"
             for scheme, codec in SETTINGS:
-                log = Path(tmp) / f"{name}_{scheme}_{codec}.mcap"
+                log = Path(tmp) / f"{name.replace('/', '_')}_{scheme}_{codec}.mcap"
                 cmd = ["voxtool", "encode", str(src), "-o", str(log), "--resolution", str(res), "--scheme", scheme,
                        "--codec", codec, "--max-range", str(max_range), "--json", "--no-progress"]
                 enc = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
@@ -143,7 +150,7 @@ def intervals(data: Path) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         for t in (0.5, 1.0, 2.0, 5.0):
             got = {}
-            for scheme, codec in (("hilbert", "zstd"), ("racer", "none")):
+            for scheme, codec in (("hilbert", "zstd"), ("nested", "cm"), ("racer", "none")):
                 log = Path(tmp) / f"{scheme}_{t}.mcap"
                 subprocess.run(["voxtool", "encode", str(src), "-o", str(log), "--resolution", "0.1", "--scheme", scheme,
                                 "--codec", codec, "--max-interval", str(t), "--no-progress"], check=True, capture_output=True)
@@ -152,12 +159,15 @@ def intervals(data: Path) -> dict:
                 got[scheme] = st
                 if scheme == "racer":
                     got["chunk"] = racer_chunk_bandwidth(log)
-            h = got["hilbert"]
+            h, c = got["hilbert"], got["nested"]
             rows.append({"max_interval_s": t, "hilbert_avg_Bps": h["avg_Bps"], "hilbert_max_Bps": h["max_Bps"],
                          "hilbert_B_per_changed": h["bytes_per_changed_voxel"],
                          "racer_over_hilbert_avg": round(got["racer"]["avg_Bps"] / h["avg_Bps"], 2),
                          "chunk_over_hilbert_avg": round(got["chunk"]["avg_Bps"] / h["avg_Bps"], 2),
-                         "chunk_over_hilbert_max": round(got["chunk"]["max_Bps"] / h["max_Bps"], 2)})
+                         "chunk_over_hilbert_max": round(got["chunk"]["max_Bps"] / h["max_Bps"], 2),
+                         "cm_B_per_changed": c["bytes_per_changed_voxel"],
+                         "chunk_over_cm_avg": round(got["chunk"]["avg_Bps"] / c["avg_Bps"], 2),
+                         "chunk_over_cm_max": round(got["chunk"]["max_Bps"] / c["max_Bps"], 2)})
             print(json.dumps(rows[-1]))
     return {"rows": rows}
 
@@ -211,7 +221,7 @@ def lossless(data: Path) -> dict:
         for name, rel, res in STREAMS:
             src = data / rel
             for scheme in ("hilbert", "nested", "racer"):
-                for codec in ("zstd", "zlib", "none"):
+                for codec in ("zstd", "zlib", "none") + (("cm",) if scheme == "nested" else ()):
                     backend = make_backend("octree", MapParams(res), SensorModel())
                     log = Path(tmp) / f"{name}_{scheme}_{codec}.mcap"
                     encode_stream(open_source(src, SourceOptions()), backend, log,
@@ -228,11 +238,16 @@ def lossless(data: Path) -> dict:
 
 
 def throughput() -> dict:
+    """Encode and decode speed in cells of box volume per second: boxes with 1 % of their cells
+    changed at random positions (the hardest case for cm: no structure to learn, every changed
+    cell costs its full decisions); hilbert with and without its cell order cached."""
+    from voxtool.codec.cm import warm_up
     from voxtool.codec.hilbert import box_order
     from voxtool.codec.packet import decode_packet, encode_packet
 
     rng = np.random.default_rng(1)
     rows = []
+    warm_up()
     for dims in ((200, 200, 100), (400, 300, 90), (512, 512, 64)):
         cells = int(np.prod(dims))
         idx = rng.choice(cells, cells // 100, replace=False)
@@ -240,18 +255,19 @@ def throughput() -> dict:
         states = rng.integers(0, 2, idx.shape[0]).astype(np.uint8)
         box = (np.zeros(3, np.int64), np.array(dims))
         encode_packet("r", 0, 0, "hilbert", "zstd", 0.1, keys, states, box=box)  # JIT
-        for cached in (False, True):
-            if not cached:
+        for scheme, codec, cached in (("hilbert", "zstd", False), ("hilbert", "zstd", True), ("nested", "zstd", None),
+                                      ("nested", "cm", None)):
+            if cached is False:
                 box_order.cache_clear()
             t0 = time.perf_counter()
-            blob = encode_packet("r", 0, 0, "hilbert", "zstd", 0.1, keys, states, box=box)
+            blob = encode_packet("r", 0, 0, scheme, codec, 0.1, keys, states, box=box)
             t1 = time.perf_counter()
-            if not cached:
+            if cached is False:
                 box_order.cache_clear()
             decode_packet(blob)
             t2 = time.perf_counter()
-            rows.append({"dims": dims, "cells": cells, "order_cached": cached,
-                         "encode_Mcells_per_s": round(cells / (t1 - t0) / 1e6, 1),
+            rows.append({"dims": dims, "cells": cells, "scheme": scheme, "codec": codec, "order_cached": cached,
+                         "bytes": len(blob), "encode_Mcells_per_s": round(cells / (t1 - t0) / 1e6, 1),
                          "decode_Mcells_per_s": round(cells / (t2 - t1) / 1e6, 1)})
     for r in rows:
         print(r)
@@ -262,13 +278,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("mode", choices=["fig5", "streams", "intervals", "throughput", "split", "lossless"])
     ap.add_argument("--samples", type=int, default=10)
+    ap.add_argument("--pcd", action="store_true", help="streams: the PCD directories instead of the MCAP files")
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
     args = ap.parse_args()
-    result = {"fig5": lambda: fig5(args.samples), "streams": lambda: streams(Path(args.data)),
+    result = {"fig5": lambda: fig5(args.samples), "streams": lambda: streams(Path(args.data), args.pcd),
               "intervals": lambda: intervals(Path(args.data)), "throughput": throughput,
               "split": lambda: split(Path(args.data)), "lossless": lambda: lossless(Path(args.data))}[args.mode]()
     OUT.mkdir(exist_ok=True)
-    (OUT / f"packets_{args.mode}.json").write_text(json.dumps(result, indent=2, default=str))
+    suffix = "_pcd" if args.pcd and args.mode == "streams" else ""
+    (OUT / f"packets_{args.mode}{suffix}.json").write_text(json.dumps(result, indent=2, default=str))
 
 
 if __name__ == "__main__":

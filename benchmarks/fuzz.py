@@ -2,7 +2,7 @@
 
     python benchmarks/fuzz.py [--inputs 1000000] [--seed 0] [--out bench-results/fuzz.json]
 
-Each input is a valid seed (PCD of all three DATA kinds, PLY, snapshot, packet of every scheme,
+Each input is a valid seed (PCD of all three DATA kinds, PLY, snapshot, packet of every scheme and codec,
 packet log, OctoMap .bt) mutated by bit flips, byte overwrites with boundary values, truncation,
 insertion and chunk duplication. A decoder may only return or raise VoxtoolError; anything else
 is a crash (the input is saved under bench-results/fuzz_crashes/). An input taking over 5 s is a
@@ -69,6 +69,10 @@ def seeds() -> dict[str, list[bytes]]:
                              frames=[occupied_frame(1, morton_encode(keys))] if s == "occupied" else None)
                for s in ("hilbert", "nested", "racer", "occupied") for c in ("none", "zstd", "zlib")]
     packets.append(encode_packet("r", 0, 0, "hilbert", "zstd", 0.1, keys[:0], np.array([0, 1, 2, 0, 1, 1, 0, 2], np.uint8),
+                                 kind=KIND_KEYFRAME, box=(np.array([1, 1, 1]), np.array([2, 2, 2]))))
+    line = np.array([[20 + i, 20 + i // 2, 22] for i in range(12)])  # cm: a box with some structure
+    packets.append(encode_packet("r", 3, 4, "nested", "cm", 0.1, line, np.array([0] * 11 + [1], np.uint8)))
+    packets.append(encode_packet("r", 0, 0, "nested", "cm", 0.1, keys[:0], np.array([0, 1, 2, 0, 1, 1, 0, 2], np.uint8),
                                  kind=KIND_KEYFRAME, box=(np.array([1, 1, 1]), np.array([2, 2, 2]))))
     with tempfile.TemporaryDirectory() as tmpdir:
         tmp = Path(tmpdir) / "seed.mcap"

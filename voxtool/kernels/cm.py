@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-# Context bits. "near" (9 bits, bit i set when that causal neighbour is not background):
+# Context bits; the coder below reads these neighbours written out, in this bit order.
+# "near" (9 bits, bit i set when that causal neighbour (dx, dy, dz) is not background):
 NEAR = ((-1, 0, 0), (1, -1, 0), (0, -1, 0), (-1, -1, 0), (1, 0, -1), (0, 0, -1), (-1, 0, -1), (0, -1, -1), (0, 1, -1))
 # "far" (7 bits), used instead when no near neighbour is set: corners below, cells two steps back
 FAR = ((1, -1, -1), (-1, -1, -1), (1, 1, -1), (-1, 1, -1), (-2, 0, 0), (0, -2, 0), (0, 0, -2))
