@@ -6,7 +6,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from voxtool.errors import KeyRangeError
-from voxtool.keys import coords_to_keys, expand_leaves, keys_to_coords, morton_decode, morton_encode
+from voxtool.keys import coords_to_keys, expand_leaves, key_bounds, keys_to_coords, morton_decode, morton_encode
 
 
 def brute_morton(x: int, y: int, z: int) -> int:
@@ -41,3 +41,12 @@ def test_out_of_range_point_is_an_error_naming_point_and_limit():
 def test_expand_leaves_covers_contiguous_morton_ranges():
     codes = expand_leaves(np.array([0, 64]), np.array([15, 16], dtype=np.uint8))
     assert codes.tolist() == list(range(8)) + [64]
+
+
+@given(st.lists(st.tuples(*[st.integers(0, 65535)] * 3), min_size=1, max_size=50))
+def test_key_bounds_are_the_per_axis_extremes(keys):
+    arr = np.array(keys, dtype=np.uint16)
+    lo, hi = key_bounds(arr)
+    assert lo.tolist() == [min(k[a] for k in keys) for a in range(3)]
+    assert hi.tolist() == [max(k[a] for k in keys) for a in range(3)]
+    assert lo.dtype == np.int64 and (hi - lo + 1).min() >= 1  # no uint16 wrap-around in box sizes

@@ -13,7 +13,7 @@ import numpy as np
 from voxtool.codec.log import PacketLogWriter
 from voxtool.codec.packet import FREE, OCCUPIED, UNKNOWN, encode_packet, keyframe_packet, occupied_frame
 from voxtool.errors import ParameterError
-from voxtool.keys import morton_decode
+from voxtool.keys import key_bounds, morton_decode
 from voxtool.maps.base import MapBackend, removed_voxels, update_codes
 from voxtool.sources import ScanStream
 
@@ -62,11 +62,12 @@ def split_changes(codes: np.ndarray, max_count: int, density: int = 256) -> list
         n = b - a
         if n == 0:
             continue
-        k = morton_decode(codes[[a, b - 1]]).astype(np.int64)
         if n <= max_count:
-            keys = morton_decode(codes[a:b]).astype(np.int64) if n > 2 else k
-            volume = int(np.prod(keys.max(axis=0) - keys.min(axis=0) + 1))
-            if density <= 0 or volume <= max(density * n, 1 << 18) or n == 1:
+            if density <= 0 or n == 1:
+                out.append((a, b))
+                continue
+            lo, hi = key_bounds(morton_decode(codes[a:b]))
+            if int(np.prod(hi - lo + 1)) <= max(density * n, 1 << 18):
                 out.append((a, b))
                 continue
         # cut where the highest differing Morton bit of the run's ends flips
@@ -157,11 +158,15 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
             for a, b in runs:
                 t0 = time.perf_counter()
                 keys = morton_decode(pend_codes[a:b]).astype(np.int64)
-                box = (map_lo, map_hi - map_lo + 1) if opts.scheme == "racer" else None
+                box = None
+                if opts.scheme == "racer":
+                    box = (map_lo, map_hi - map_lo + 1)
+                elif opts.scheme in ("hilbert", "nested") and keys.shape[0]:
+                    lo, hi = key_bounds(keys)
+                    box = (lo, hi - lo + 1)
+                    rep.encoded_cells += int(np.prod(box[1]))
                 blob = encode_packet(opts.robot, seq, stamp, opts.scheme, opts.codec, res, keys, pend_states[a:b],
                                      box=box, frames=list(frames) if opts.scheme == "occupied" else None)
-                if opts.scheme in ("hilbert", "nested") and keys.shape[0]:
-                    rep.encoded_cells += int(np.prod(keys.max(axis=0) - keys.min(axis=0) + 1))
                 rep.time_encode_s += time.perf_counter() - t0
                 log.write(opts.robot, seq, stamp, blob)
                 rep.packets += 1
@@ -200,9 +205,9 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
                 rep.time_map_s += time.perf_counter() - t0
                 changed = before != after
                 if changed.any():  # running box of every voxel that ever changed: RACER's address space
-                    ck = morton_decode(codes[changed]).astype(np.int64)
-                    map_lo = np.minimum(map_lo, ck.min(axis=0))
-                    map_hi = np.maximum(map_hi, ck.max(axis=0))
+                    ck_lo, ck_hi = key_bounds(morton_decode(codes[changed]))
+                    map_lo = np.minimum(map_lo, ck_lo)
+                    map_hi = np.maximum(map_hi, ck_hi)
                 new_occ = codes[changed & (after == OCCUPIED)]
                 if opts.scheme == "occupied":
                     frames.append(occupied_frame(rep.scans, new_occ))

@@ -23,7 +23,7 @@ import zstandard
 from voxtool.codec.varint import decode_deltas, encode_deltas
 from voxtool.compression import zstd_exact
 from voxtool.errors import FormatError
-from voxtool.keys import morton_decode
+from voxtool.keys import key_bounds, morton_decode
 
 MAGIC = b"VXPK"
 VERSION = 2  # 2: `occupied` frames as varint Morton deltas; version-1 packets still decode
@@ -156,8 +156,11 @@ def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, 
         lo, dims, count = np.zeros(3, np.int64), np.zeros(3, np.int64), len(frames)
     else:
         if box is None:
-            lo = keys.min(axis=0) if keys.shape[0] else np.zeros(3, np.int64)
-            dims = (keys.max(axis=0) - lo + 1) if keys.shape[0] else np.zeros(3, np.int64)
+            if keys.shape[0]:
+                lo, hi = key_bounds(keys)
+                dims = hi - lo + 1
+            else:
+                lo, dims = np.zeros(3, np.int64), np.zeros(3, np.int64)
         else:
             lo, dims = np.asarray(box[0], np.int64), np.asarray(box[1], np.int64)
         cells = int(np.prod(dims))
@@ -207,8 +210,11 @@ def keyframe_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str
     """Full-state keyframe of known voxels (Morton codes, FREE/OCCUPIED states): every cell of
     their bounding box, unknown where no voxel is given, no 'unchanged'."""
     keys = morton_decode(codes).astype(np.int64)
-    lo = keys.min(axis=0) if keys.shape[0] else np.zeros(3, np.int64)
-    dims = (keys.max(axis=0) - lo + 1) if keys.shape[0] else np.ones(3, np.int64)
+    if keys.shape[0]:
+        lo, hi = key_bounds(keys)
+        dims = hi - lo + 1
+    else:
+        lo, dims = np.zeros(3, np.int64), np.ones(3, np.int64)
     grid = np.full(int(np.prod(dims)), UNKNOWN, dtype=np.uint8)
     rel = keys - lo
     grid[rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])] = states

@@ -130,28 +130,30 @@ def _make_coder(decode: bool):
             for y in range(PAD, ny + PAD):
                 if not decode and pos + pending + row_bytes > cap:
                     return -1
-                # which cells of this row have a non-background cell among their context neighbours
-                # (rows already coded): one vectorizable pass, then one sliding 3-cell window
+                # per cell, six bits of the rows already coded (one vectorizable pass): bit 0 row
+                # y-1, bit 1 row y below, bit 2 row y-1 below, bit 3 row y+1 below, bit 4 row y-2,
+                # bit 5 row y two planes below; then a sliding window of three cells (x-1, x, x+1)
                 for xx in range(nx + 2 * PAD):
-                    around[xx] = (grid[y - 1, xx] | grid[y - 2, xx] | below[y - 1, xx] | below[y, xx]
-                                  | below[y + 1, xx] | below2[y, xx])
-                window = ((around[PAD - 1] != 0) << 2) | ((around[PAD] != 0) << 1) | (around[PAD + 1] != 0)
+                    around[xx] = ((grid[y - 1, xx] != 0) | ((below[y, xx] != 0) << 1)
+                                  | ((below[y - 1, xx] != 0) << 2) | ((below[y + 1, xx] != 0) << 3)
+                                  | ((grid[y - 2, xx] != 0) << 4) | ((below2[y, xx] != 0) << 5))
+                window = (np.int64(around[PAD]) << 8) | around[PAD + 1]  # byte 2: x-1, 1: x, 0: x+1
                 r0 = 0  # bit 0: cell x-1 of this row, bit 1: cell x-2
                 for x in range(PAD, nx + PAD):
                     if window == 0 and r0 == 0:
                         ctx = OFF_FAR  # nothing around: most cells of a sparse box
                     else:
-                        near = ((r0 & 1) | ((grid[y - 1, x + 1] != 0) << 1) | ((grid[y - 1, x] != 0) << 2)
-                                | ((grid[y - 1, x - 1] != 0) << 3) | ((below[y, x + 1] != 0) << 4)
-                                | ((below[y, x] != 0) << 5) | ((below[y, x - 1] != 0) << 6)
-                                | ((below[y - 1, x] != 0) << 7) | ((below[y + 1, x] != 0) << 8))
+                        left = window >> 16
+                        mid = (window >> 8) & 0xFF
+                        right = window & 0xFF
+                        near = ((r0 & 1) | ((right & 1) << 1) | ((mid & 1) << 2) | ((left & 1) << 3)
+                                | ((right & 2) << 3) | ((mid & 2) << 4) | ((left & 2) << 5)
+                                | ((mid & 4) << 5) | ((mid & 8) << 5))
                         if near != 0:
                             ctx = near
                         else:
-                            ctx = OFF_FAR + ((below[y - 1, x + 1] != 0) | ((below[y - 1, x - 1] != 0) << 1)
-                                             | ((below[y + 1, x + 1] != 0) << 2) | ((below[y + 1, x - 1] != 0) << 3)
-                                             | ((r0 >> 1) << 4) | ((grid[y - 2, x] != 0) << 5)
-                                             | ((below2[y, x] != 0) << 6))
+                            ctx = OFF_FAR + (((right >> 2) & 1) | ((left >> 1) & 2) | ((right >> 1) & 4)
+                                             | (left & 8) | ((r0 >> 1) << 4) | ((mid & 16) << 1) | ((mid & 32) << 1))
                     code = background if decode else codes[i]
                     # decision 1: is the cell not background?
                     known, rng, low, cache, pending, pos = _code_bit(
@@ -180,7 +182,7 @@ def _make_coder(decode: bool):
                     i += 1
                     grid[y, x] = cls
                     r0 = ((r0 << 1) & 3) | (cls != 0)
-                    window = ((window << 1) & 7) | (around[x + 2] != 0)
+                    window = ((window << 8) & 0xFFFFFF) | around[x + 2]
         if not decode:
             for _ in range(5):  # flush: the decoder reads the 4 bytes of `low` after the leading 0
                 if pos + pending + 1 > cap:
