@@ -293,6 +293,24 @@ def test_encode_decode_merge_stats_on_the_sample(tmp_path, sample_map):
     assert code == 0 and json.loads(text)[0]["robot"] == "a"
 
 
+def test_encode_with_cm_decodes_to_the_built_map_in_fewer_bytes(tmp_path, sample_map):
+    built, stats = sample_map
+    sizes = {}
+    for scheme, codec in (("hilbert", "zstd"), ("nested", "cm")):
+        log = tmp_path / f"{codec}.mcap"
+        code, text = run("encode", "--sample", "-o", log, "--scheme", scheme, "--codec", codec, "--json")
+        assert code == 0, text
+        sizes[codec] = json.loads(text)["bytes"]
+        out = tmp_path / f"{codec}.vxm"
+        assert run("decode", log, "-o", out)[0] == 0
+        decoded = json.loads(run("stats", out, "--json")[1])
+        assert decoded["occupied_voxels"] == stats["occupied_voxels"] and decoded["free_voxels"] == stats["free_voxels"]
+    assert sizes["cm"] < sizes["zstd"]
+    log = tmp_path / "refused.mcap"
+    code, text = run("encode", "--sample", "-o", log, "--codec", "cm")  # the default scheme is hilbert
+    assert code == 2 and "--scheme nested" in text and not log.exists()
+
+
 def test_bad_packet_logs_fail_cleanly(tmp_path):
     log = tmp_path / "r.mcap"
     assert run("encode", "--sample", "-o", log, "--stop", "1")[0] == 0

@@ -163,13 +163,13 @@ def declared_size_too_large(blob: bytes) -> bytes:
     return recrc(body + b"\0\0\0\0")
 
 
-def packet_log_case(mutate=None, blob_edit=None):
+def packet_log_case(mutate=None, blob_edit=None, scheme="hilbert", codec="zstd"):
     def make(tmp):
         from voxtool.codec.log import PacketLogWriter
         from voxtool.codec.packet import encode_packet
 
         path = tmp / "in.mcap"
-        blob = encode_packet("r", 0, 10, "hilbert", "zstd", 0.1, np.array([[5, 5, 5], [6, 6, 6]]), np.array([0, 1], np.uint8))
+        blob = encode_packet("r", 0, 10, scheme, codec, 0.1, np.array([[5, 5, 5], [6, 6, 6]]), np.array([0, 1], np.uint8))
         if blob_edit:
             blob = blob_edit(blob)
         with PacketLogWriter(path) as log:
@@ -191,6 +191,20 @@ def huge_box(blob: bytes) -> bytes:
     payload = blob[HEADER.size :]
     crc = zlib.crc32(payload, zlib.crc32(head[:-4]))
     return head[:-4] + struct.pack("<I", crc) + payload
+
+
+def resealed(blob: bytes, payload: bytes | None = None, **fields) -> bytes:
+    """The packet with header fields (by HEADER index) and payload replaced, its stored size and
+    CRC made right again: the decoder must find what is wrong behind a valid CRC."""
+    from voxtool.codec.packet import HEADER
+
+    f = list(HEADER.unpack_from(blob, 0))
+    for index, value in fields.items():
+        f[int(index[1:])] = value
+    payload = blob[HEADER.size :] if payload is None else payload
+    f[20] = len(payload)
+    head = HEADER.pack(*f)
+    return head[:-4] + struct.pack("<I", zlib.crc32(payload, zlib.crc32(head[:-4]))) + payload
 
 
 def far_point(tmp):
@@ -305,6 +319,15 @@ CASES = [
     ("packet with bad CRC", packet_log_case(blob_edit=lambda b: b[:-1] + bytes([b[-1] ^ 1])), 5, "packet of 'r': CRC mismatch"),
     ("packet declares 4 GB box", packet_log_case(blob_edit=huge_box), 5, "exceeds the key range or 2147483648 cells"),
     ("packet future version", packet_log_case(blob_edit=lambda b: b[:4] + bytes([7]) + b[5:]), 5, "packet version 7 is not supported"),
+    ("packet cm stream truncated", packet_log_case(blob_edit=lambda b: resealed(b, b[96:-1]), scheme="nested", codec="cm"), 5,
+     "packet of 'r': cm stream is truncated"),
+    ("packet cm stream with a trailing byte", packet_log_case(blob_edit=lambda b: resealed(b, b[96:] + b"\0"), scheme="nested",
+                                                           codec="cm"), 5, "cm stream has 1 trailing bytes"),
+    ("packet cm in hilbert order", packet_log_case(blob_edit=lambda b: resealed(b, f3=0), scheme="nested", codec="cm"), 5,
+     "codec cm with scheme hilbert"),
+    ("packet cm box too large for its stream", packet_log_case(
+        blob_edit=lambda b: resealed(b, f15=4000, f16=4000, f17=100, f19=(4000 * 4000 * 100 + 3) // 4),
+        scheme="nested", codec="cm"), 5, "cannot hold a box of 1600000000 cells"),
 ]
 
 
