@@ -245,15 +245,19 @@ def test_bandwidth_windows_and_average():
     assert short["avg_Bps"] == 1200 and short["max_Bps"] == 1200
 
 
-@pytest.mark.parametrize("n_lim", [-1, 400])
-def test_hash_map_logs_decode_to_the_hash_map(tmp_path, n_lim):
+@pytest.mark.parametrize("n_lim,scheme,codec", [(-1, "hilbert", "zstd"), (400, "hilbert", "zstd"), (400, "nested", "cm")])
+def test_hash_map_logs_decode_to_the_hash_map(tmp_path, n_lim, scheme, codec):
     """The hash map casts rays in apply() and drops voxels beyond its limit: a log of it must
-    still replay to its map (voxels that left read as unknown, so they are absent)."""
+    still replay to its map (voxels that left read as unknown, so they are absent; with cm such
+    a voxel is the third decision's 'other' code)."""
     src = scene_dir(tmp_path)
     backend = make_backend("hashmap", MapParams(0.1), SensorModel(), n_lim=n_lim, d_inf=0.2)
     out = tmp_path / "h.mcap"
     report = encode_stream(open_source(src, SourceOptions()), backend, out,
-                           EncodeOptions(max_changes=300, max_interval=0.25), {}, progress=False)
+                           EncodeOptions(scheme=scheme, codec=codec, max_changes=300, max_interval=0.25), {},
+                           progress=False)
+    if n_lim >= 0:
+        assert any((p.states == 2).any() for p in packets_of(out))  # voxels that left the map
     assert report["packets"] > 5
     fused = fuse([out])
     codes, states = map_states(backend)
