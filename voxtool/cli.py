@@ -293,7 +293,7 @@ def cache_bench_cmd(source, sample, tau, buckets, order, threads, as_json, **kw)
 @scan_options
 @click.option("--scheme", type=click.Choice(["hilbert", "nested", "racer", "occupied"]), default="hilbert", show_default=True)
 @click.option("--codec", type=click.Choice(["zstd", "zlib", "cm", "none"]), default="zstd", show_default=True,
-              help="Payload compression. cm: a 3D context model with a range coder, about 60 % smaller than "
+              help="Payload compression. cm: a 3D context model with a range coder, 40-60 % smaller than "
                    "zstd; codes boxes in x-y-z order, so only with --scheme nested (docs/packets.md).")
 @click.option("--max-changes", default=50_000, show_default=True, type=int, help="Emit a packet once this many voxels changed state (d).")
 @click.option("--max-interval", default=0.5, show_default=True, type=float, help="...or this many seconds of scan time passed (t).")

@@ -2,7 +2,7 @@
 
 zstd and zlib see a box as a string of bytes, four cells each, along one curve. What a box holds
 is 3D: thin lines of newly free voxels and surfaces of new hits. `cm` codes each cell with a
-probability learned from the cells already coded around it in 3D, and so spends about 60 %
+probability learned from the cells already coded around it in 3D, and so spends 40-60 %
 fewer bytes than zstd on the real streams (docs/packets.md). Bytes: formats/packet.md.
 """
 
