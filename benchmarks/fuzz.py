@@ -201,6 +201,8 @@ def main() -> None:
         row["max_s"] = max(row["max_s"], dt)
         if dt > 5.0:
             row["hangs"] += 1
+            crash_dir.mkdir(parents=True, exist_ok=True)
+            (crash_dir / f"{name}_{k}_hang.bin").write_bytes(blob)
     elapsed = time.time() - t_start
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     result = {"inputs": args.inputs, "seconds": round(elapsed, 1), "peak_rss_mib": round(peak, 1),

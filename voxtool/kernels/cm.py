@@ -103,7 +103,10 @@ def _make_coder(decode: bool):
         other = 2 if background == 3 else 3  # the non-background code that is neither free nor occupied
         # the classes of the last three planes (z-2, z-1, z), reused in turn: the context reaches two
         # planes back, and the memory stays three planes whatever the box's shape
-        planes = np.zeros((3, ny + 2 * PAD, nx + 2 * PAD), dtype=np.uint8)
+        # a box without cells codes nothing: no rows to walk, no planes (a side of 0 with two large
+        # ones would otherwise cost time and memory for a stream that holds no cells)
+        planes_z = 0 if nx == 0 or ny == 0 or nz == 0 else nz
+        planes = np.zeros((3, ny + 2 * PAD if planes_z else 0, nx + 2 * PAD if planes_z else 0), dtype=np.uint8)
         around = np.zeros(nx + 2 * PAD, dtype=np.uint8)
         probs = np.full(N_CONTEXTS, STATE_ONE // 2, dtype=np.int64)
         counts = np.zeros(N_CONTEXTS, dtype=np.int64)
@@ -122,7 +125,7 @@ def _make_coder(decode: bool):
                 pos += 1
         row_bytes = 5 * nx + 8  # a cell's three decisions emit at most 36 bits
         i = 0
-        for z in range(nz):
+        for z in range(planes_z):
             grid = planes[z % 3]  # plane z (it held z-3)
             grid[:, :] = 0
             below = planes[(z + 2) % 3]  # plane z-1 (zeros for the first plane)
