@@ -291,10 +291,11 @@ def cache_bench_cmd(source, sample, tau, buckets, order, threads, as_json, **kw)
 @click.option("--robot", default="r1", show_default=True, help="Robot id (1..16 bytes) stamped on every packet.")
 @backend_options
 @scan_options
-@click.option("--scheme", type=click.Choice(["hilbert", "nested", "racer", "occupied"]), default="hilbert", show_default=True)
+@click.option("--scheme", type=click.Choice(["hilbert", "nested", "racer", "occupied"]), default=None,
+              help="What a packet holds (docs/packets.md).  [default: hilbert; nested with --codec cm]")
 @click.option("--codec", type=click.Choice(["zstd", "zlib", "cm", "none"]), default="zstd", show_default=True,
               help="Payload compression. cm: a 3D context model with a range coder, 40-60 % smaller than "
-                   "zstd; codes boxes in x-y-z order, so only with --scheme nested (docs/packets.md).")
+                   "zstd; codes boxes in x-y-z order, so only with the nested scheme (docs/packets.md).")
 @click.option("--max-changes", default=50_000, show_default=True, type=int, help="Emit a packet once this many voxels changed state (d).")
 @click.option("--max-interval", default=0.5, show_default=True, type=float, help="...or this many seconds of scan time passed (t).")
 @click.option("--ring", default=3, show_default=True, type=int, help="Frames per packet of the 'occupied' scheme (k).")
@@ -320,6 +321,8 @@ def encode(source, sample, output, robot, scheme, codec, max_changes, max_interv
     options, params, sensor = scan_setup(kw)
     backend, extra = backend_setup(kw)
     src = resolve_source(source, sample)
+    if scheme is None:
+        scheme = "nested" if codec == "cm" else "hilbert"
     opts = EncodeOptions(robot, scheme, codec, max_changes, max_interval, ring, keyframe_every, rate_hz)
     mapper = make_backend(backend, params, sensor, **extra)
     stream = open_source(src, options)
