@@ -101,11 +101,11 @@ def _make_coder(decode: bool):
     @njit(cache=True)
     def code_box(codes, nx, ny, nz, background, data):
         other = 2 if background == 3 else 3  # the non-background code that is neither free nor occupied
-        # the classes of the last three planes (z-2, z-1, z), reused in turn: the context reaches two
-        # planes back, and the memory stays three planes whatever the box's shape
-        # a box without cells codes nothing: no rows to walk, no planes (a side of 0 with two large
-        # ones would otherwise cost time and memory for a stream that holds no cells)
+        # a box without cells codes nothing: no rows to walk and no planes (a side of 0 beside two
+        # large ones would otherwise cost time and memory for a stream that holds no cells)
         planes_z = 0 if nx == 0 or ny == 0 or nz == 0 else nz
+        # the classes of the last three planes (z-2, z-1, z), reused in turn: the context reaches
+        # two planes back, and the memory stays three planes whatever the box's shape
         planes = np.zeros((3, ny + 2 * PAD if planes_z else 0, nx + 2 * PAD if planes_z else 0), dtype=np.uint8)
         around = np.zeros(nx + 2 * PAD, dtype=np.uint8)
         probs = np.full(N_CONTEXTS, STATE_ONE // 2, dtype=np.int64)
@@ -149,6 +149,7 @@ def _make_coder(decode: bool):
                         left = window >> 16
                         mid = (window >> 8) & 0xFF
                         right = window & 0xFF
+                        # the bits in NEAR's and FAR's order (top of this file), from the row bits
                         near = ((r0 & 1) | ((right & 1) << 1) | ((mid & 1) << 2) | ((left & 1) << 3)
                                 | ((right & 2) << 3) | ((mid & 2) << 4) | ((left & 2) << 5)
                                 | ((mid & 4) << 5) | ((mid & 8) << 5))
