@@ -268,17 +268,16 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
 
         background = UNCHANGED if kind == KIND_DELTA else UNKNOWN
         grid = decompress_box(blob[HEADER.size:], dims_a, background, where)
-    elif scheme in ("hilbert", "nested"):
-        raw = _decompress(blob[HEADER.size:], codec, raw_size, where)
-        codes = unpack_2bit(raw, cells)
-        order = _cell_order(scheme, dims_a)
-        grid = np.empty(cells, dtype=np.uint8)
-        if order is not None:
-            grid[order] = codes
-        else:
-            grid = codes
     else:
         raw = _decompress(blob[HEADER.size:], codec, raw_size, where)
+        if scheme in ("hilbert", "nested"):
+            codes = unpack_2bit(raw, cells)
+            order = _cell_order(scheme, dims_a)
+            grid = np.empty(cells, dtype=np.uint8)
+            if order is not None:
+                grid[order] = codes
+            else:
+                grid = codes
     if scheme in ("hilbert", "nested"):
         if kind == KIND_KEYFRAME and np.any(grid == UNCHANGED):
             raise FormatError(f"{where}: keyframe holds 'unchanged' cells")
