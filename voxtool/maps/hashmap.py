@@ -420,8 +420,7 @@ class HashVoxelMap:
                   self.ipool, self.imeta)
 
     def extra_meta(self) -> dict[str, Any]:
-        return {k: self.values[k] for k in ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")} | {
-            "p_free": self.p_free, "discretize": self.discretize}
+        return {k: self.values[k] for k in SCHEDULABLE} | {"p_free": self.p_free, "discretize": self.discretize}
 
     def extra_stats(self) -> dict[str, Any]:
         out: dict[str, Any] = {"n_occ": int(self.meta[K.M_HSIZE]), "n_inf": self.n_inflated()}
