@@ -250,7 +250,7 @@ def test_wrong_output_suffixes_are_refused(tmp_path, sample_map):
 
 
 def test_cache_bench_on_sample_reports_consistent_rows():
-    code, text = run("cache-bench", "--sample", "--threads", "1,2", "--order", "morton,random", "--json")
+    code, text = run("cache-bench", "--sample", "--overlap", "0,1", "--order", "morton,random", "--json")
     assert code == 0, text
     rows = json.loads(text)["rows"]
     assert [r["backend"] for r in rows] == ["octree"] + ["octocache"] * 4
@@ -379,7 +379,7 @@ def test_encode_takes_the_build_backend_options(tmp_path):
     ("hashmap", "d_inf=wide", "d_inf='wide' must be a number"),
     ("octocache", "tau=abc", "tau='abc' must be an integer"),
     ("octocache", "order=7", "order=7 must be text"),
-    ("tiny", "nodes=5", "has no option nodes (it takes pool_blocks, map_size, hit, miss, prior)"),
+    ("tiny", "nodes=5", "has no option nodes (it takes pool_blocks, map_size, hit, miss, prior, threads)"),
 ])
 def test_backend_options_of_the_wrong_kind_are_a_clear_error(tmp_path, backend, param, message):
     out = tmp_path / "m.vxm"

@@ -21,13 +21,13 @@ def same_leaves(a, b):
             and np.array_equal(la.values, lb.values))
 
 
-@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("overlap", [0, 1])
 @pytest.mark.parametrize("tau,buckets,order", [(4, None, "morton"), (1, 64, "random"), (2, 1024, "xyz"),
                                                (16, 256, "bucket"), (4, 1 << 16, "morton")])
-def test_queries_interleaved_with_insertion_equal_octree(tau, buckets, order, threads):
+def test_queries_interleaved_with_insertion_equal_octree(tau, buckets, order, overlap):
     params = MapParams(resolution=0.2)
     plain = OctreeMap(params, SENSOR)
-    cached = OctoCacheMap(params, SENSOR, buckets=buckets, tau=tau, threads=threads, order=order)
+    cached = OctoCacheMap(params, SENSOR, buckets=buckets, tau=tau, overlap=overlap, order=order)
     rng = np.random.default_rng(tau)
     for scan in world_scans(8, 200, seed=13):
         plain.integrate(scan)
@@ -71,7 +71,7 @@ def test_snapshot_round_trip_after_flush(tmp_path):
 
 
 @pytest.mark.parametrize("kwargs,message", [({"buckets": 100}, "power of two"), ({"tau": 0}, "tau=0"),
-                                            ({"threads": 3}, "threads=3"), ({"order": "ray"}, "order 'ray'")])
+                                            ({"overlap": 3}, "overlap=3"), ({"order": "ray"}, "order 'ray'")])
 def test_bad_parameters(kwargs, message):
     with pytest.raises(ParameterError, match=message):
         OctoCacheMap(MapParams(0.2), SENSOR, **kwargs)

@@ -59,6 +59,7 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
             writer.close(ok)
     result = backend_stats(backend)
     result.update(report.to_dict())
+    result["threads"] = backend.threads
     if writer is not None:
         result["shared_bytes"] = writer.bytes
         result["shared_packets"] = writer.seq

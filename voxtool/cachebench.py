@@ -60,10 +60,10 @@ def run_config(source: str, options: dict, params: dict, sensor: dict, backend: 
                    voxel_updates=sum(c.updates), written_to_octree=c.written_to_octree)
         # thread 1's time: the octree update counts only where thread 1 did it or waited for it;
         # the final flush (drain + ordering + write-back) is all on thread 1
-        t1_update = before_flush[0] if m.threads == 1 else before_flush[1]
+        t1_update = before_flush[1] if m.overlap else before_flush[0]
         out["parts_s"] = raycast + c.insert + c.evict + t1_update + flush
-        if m.threads == 2:
-            out["overlap"] = 1.0 - c.wait / max(c.octree_update - flush, 1e-9)
+        if m.overlap:
+            out["overlapped"] = 1.0 - c.wait / max(c.octree_update - flush, 1e-9)
         m.close()
     return out
 
@@ -82,13 +82,14 @@ def _spawn(source, options, params, sensor, backend, cfg, workdir: Path, tag: st
 
 
 def cache_bench(source, options: dict, params: dict, sensor: dict, taus: list[int], buckets: list[int | None],
-                orders: list[str], threads: list[int], progress=None) -> dict:
-    """Plain octree first, then one OctoCache row per (threads, tau, buckets, order)."""
+                orders: list[str], overlaps: list[int], threads: int = 0, progress=None) -> dict:
+    """Plain octree first, then one OctoCache row per (overlap, tau, buckets, order); every row
+    on `threads` threads (0: the usable cores)."""
     with tempfile.TemporaryDirectory(prefix="voxtool-cache-bench-") as tmp:
         work = Path(tmp)
-        configs = [("octree", {})] + [
-            ("octocache", {"threads": th, "tau": tau, "buckets": b, "order": order})
-            for th in threads for tau in taus for b in buckets for order in orders
+        configs = [("octree", {"threads": threads})] + [
+            ("octocache", {"overlap": ov, "tau": tau, "buckets": b, "order": order, "threads": threads})
+            for ov in overlaps for tau in taus for b in buckets for order in orders
         ]
         rows = []
         for k, (backend, cfg) in enumerate(configs):

@@ -81,9 +81,12 @@ def keys_to_coords(keys: np.ndarray, resolution: float) -> np.ndarray:
     return ((np.asarray(keys).astype(np.float64) - TREE_MAX_VAL) + 0.5) * resolution
 
 
+_SPAN_OF_DEPTH = np.left_shift(np.int64(1), 3 * (TREE_DEPTH - np.arange(TREE_DEPTH + 1, dtype=np.int64)))
+
+
 def leaf_span(depth: np.ndarray) -> np.ndarray:
-    """Number of finest-level voxels covered by a leaf at each depth (8^(16-depth))."""
-    return np.left_shift(np.int64(1), 3 * (TREE_DEPTH - np.asarray(depth, dtype=np.int64)))
+    """Number of finest-level voxels covered by a leaf at each depth (8^(16-depth), 0..16)."""
+    return _SPAN_OF_DEPTH[np.asarray(depth)]
 
 
 def expand_leaves(codes: np.ndarray, depths: np.ndarray) -> np.ndarray:

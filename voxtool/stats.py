@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from voxtool.errors import FormatError, ParameterError, RegressionError
-from voxtool.keys import keys_to_coords, leaf_span, morton_decode
+from voxtool.keys import keys_to_coords
 from voxtool.maps.base import Leaves
 
 # figures `stats --compare` checks; timings are machine-dependent and never compared
@@ -20,18 +20,13 @@ LOG_COMPARED = ("packets", "bytes", "total.avg_Bps", "total.max_Bps")  # packet 
 def leaf_stats(leaves: Leaves, resolution: float, threshold_log: float) -> dict:
     """Occupied/free voxel counts at the finest resolution (pruned leaves expanded) and the
     metric bounding box of the occupied voxels (outer corners, as OctoMap's getMetricMin/Max)."""
-    occupied = leaves.values > np.float32(threshold_log)
-    spans = leaf_span(leaves.depths)
-    out = {
-        "occupied_voxels": int(spans[occupied].sum()),
-        "free_voxels": int(spans[~occupied].sum()),
-        "occupied_bbox": None,
-    }
-    if occupied.any():
-        first = morton_decode(leaves.codes[occupied])
-        last = morton_decode(leaves.codes[occupied] + spans[occupied] - 1)
-        lo = keys_to_coords(first.min(axis=0), resolution) - resolution / 2
-        hi = keys_to_coords(last.max(axis=0), resolution) + resolution / 2
+    from voxtool.kernels.stats import leaf_summary
+
+    occ, free, lo_key, hi_key = leaf_summary(leaves.codes, leaves.depths, leaves.values, np.float32(threshold_log))
+    out = {"occupied_voxels": int(occ), "free_voxels": int(free), "occupied_bbox": None}
+    if occ:
+        lo = keys_to_coords(lo_key, resolution) - resolution / 2
+        hi = keys_to_coords(hi_key, resolution) + resolution / 2
         out["occupied_bbox"] = {"min": [round(float(v), 9) for v in lo], "max": [round(float(v), 9) for v in hi]}
     return out
 

@@ -84,14 +84,15 @@ def parse_bt_bytes(blob: bytes, path: str | Path = "bt") -> BtTree:
 def bt_bytes(leaves: Leaves, resolution: float, threshold_log: float) -> bytes:
     """Encode leaves as a .bt file (max-likelihood, fully pruned)."""
     from voxtool.kernels.bt import serialize_bt
-    from voxtool.maps.octree import OctreePool
+    from voxtool.maps.shards import collapse
 
     ml = np.where(leaves.values > np.float32(threshold_log), np.float32(1.0), np.float32(-1.0)).astype(np.float32)
-    pool = OctreePool(max(1 << 16, 2 * len(leaves)))
-    pool.load(Leaves(leaves.codes, leaves.depths, ml))  # loading finalizes: equal siblings prune
-    n_leaves, n_inner = pool.node_counts()
-    data = serialize_bt(pool.child, pool.mask, pool.value, pool.meta[2], n_inner, np.float32(0.0))
-    size = n_leaves + n_inner
+    tree = collapse(Leaves(leaves.codes, leaves.depths, ml), 16)  # equal max-likelihood siblings prune
+    occupied = tree.values > 0
+    need = serialize_bt(tree.codes, tree.depths, occupied, np.zeros(0, np.uint8))
+    data = np.zeros(need, dtype=np.uint8)
+    serialize_bt(tree.codes, tree.depths, occupied, data)
+    size = len(tree) + need // 2  # leaves + inner nodes (one 16-bit word each)
     header = (
         f"{HEADER.decode()}\n# (written by voxtool)\n#\nid OcTree\nsize {size}\nres {resolution:.10g}\ndata\n"
     ).encode()

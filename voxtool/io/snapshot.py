@@ -45,8 +45,10 @@ CODECS = ("zstd", "raw")
 
 def snapshot_bytes(header: dict, arrays: dict[str, np.ndarray], codec: str = "zstd", level: int = 3) -> bytes:
     """Encode a snapshot. `header` must be JSON-serialisable; 'arrays' is filled in here.
-    codec "raw" stores arrays uncompressed (byte-exact golden vectors across zstd versions)."""
-    compressor = zstandard.ZstdCompressor(level=level)
+    codec "raw" stores arrays uncompressed (byte-exact golden vectors across zstd versions).
+    zstd runs on every core: its multi-threaded frames are the same bytes whatever the number
+    of threads, so a snapshot does not depend on the machine that wrote it."""
+    compressor = zstandard.ZstdCompressor(level=level, threads=-1)
     payloads = []
     table = []
     offset = 0
@@ -54,10 +56,10 @@ def snapshot_bytes(header: dict, arrays: dict[str, np.ndarray], codec: str = "zs
         dtype_name = np.dtype(array.dtype).name
         if dtype_name not in DTYPES:
             raise ValueError(f"array {name}: dtype {dtype_name} not storable")
-        raw = np.ascontiguousarray(array, dtype=DTYPES[dtype_name]).tobytes()
-        stored = compressor.compress(raw) if codec == "zstd" else raw
+        raw = memoryview(np.ascontiguousarray(array, dtype=DTYPES[dtype_name])).cast("B")  # no copy
+        stored = compressor.compress(raw) if codec == "zstd" else raw.tobytes()
         table.append({"name": name, "dtype": dtype_name, "shape": list(array.shape), "codec": codec,
-                      "offset": offset, "stored_bytes": len(stored), "raw_bytes": len(raw),
+                      "offset": offset, "stored_bytes": len(stored), "raw_bytes": raw.nbytes,
                       "crc32": zlib.crc32(stored)})
         payloads.append(stored)
         offset += len(stored)

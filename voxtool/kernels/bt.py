@@ -65,36 +65,51 @@ def parse_bt(data, max_leaves):
 
 
 @njit(cache=True)
-def serialize_bt(child, mask, value, has_root, n_inner, threshold):
-    """Depth-first 2-bit child words of a (max-likelihood, pruned) pool tree."""
-    out = np.empty(2 * n_inner, dtype=np.uint8)
-    if has_root == 0 or mask[0] == 0:
-        return out[:0]
-    stack = np.empty(16 * 8 + 8, dtype=np.int64)
-    stack[0] = 0
+def serialize_bt(codes, depths, occupied, out):
+    """OctoMap's binary tree stream of canonical (pruned) Morton-ordered leaves: depth-first, a
+    16-bit word per inner node, 2 bits per child (0 unknown, 1 free leaf, 2 occupied leaf, 3
+    inner). Writes into `out` when it is large enough; returns the bytes needed."""
+    n = codes.shape[0]
+    if n == 0 or (n == 1 and depths[0] == 0):
+        return 0
+    # stack of inner nodes to write: (first code, depth, leaf range)
+    st_code = np.empty(17 * 8, dtype=np.int64)
+    st_depth = np.empty(17 * 8, dtype=np.int64)
+    st_lo = np.empty(17 * 8, dtype=np.int64)
+    st_hi = np.empty(17 * 8, dtype=np.int64)
+    st_code[0] = 0
+    st_depth[0] = 0
+    st_lo[0] = 0
+    st_hi[0] = n
     sp = 1
     pos = 0
+    c_lo = np.empty(8, dtype=np.int64)
+    c_hi = np.empty(8, dtype=np.int64)
     while sp > 0:
         sp -= 1
-        nd = stack[sp]
-        m = mask[nd]
-        b = child[nd]
+        first, d, lo, hi = st_code[sp], st_depth[sp], st_lo[sp], st_hi[sp]
+        shift = 3 * (15 - d)
         word = 0
+        i = lo
         for j in range(8):
-            if m & (1 << j):
-                s = b + j
-                if mask[s] != 0:
-                    code = 3
-                elif value[s] > threshold:
-                    code = 2
+            c_lo[j] = i
+            while i < hi and (codes[i] >> shift) & 7 == j:
+                i += 1
+            c_hi[j] = i
+            if c_hi[j] > c_lo[j]:
+                if c_hi[j] - c_lo[j] == 1 and depths[c_lo[j]] == d + 1:
+                    word |= (2 if occupied[c_lo[j]] else 1) << (2 * j)
                 else:
-                    code = 1
-                word |= code << (2 * j)
-        out[pos] = word & 0xFF
-        out[pos + 1] = (word >> 8) & 0xFF
+                    word |= 3 << (2 * j)
+        if pos + 2 <= out.shape[0]:
+            out[pos] = word & 0xFF
+            out[pos + 1] = (word >> 8) & 0xFF
         pos += 2
         for j in range(7, -1, -1):
-            if m & (1 << j) and mask[b + j] != 0:
-                stack[sp] = b + j
+            if (word >> (2 * j)) & 3 == 3:
+                st_code[sp] = first | (np.int64(j) << shift)
+                st_depth[sp] = d + 1
+                st_lo[sp] = c_lo[j]
+                st_hi[sp] = c_hi[j]
                 sp += 1
-    return out[:pos]
+    return pos

@@ -10,53 +10,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from voxtool.kernels.octree import META_ROOT
-
-
-@njit(cache=True, inline="always")
-def _octree_value(child, mask, value, meta, code, path, pstate):
-    """Log-odds of the leaf holding `code` (0.0 when the octree does not know the voxel).
-
-    Read-only walk that restarts from the deepest node shared with the previous lookup
-    (path[0..pstate[0]], previous code pstate[1]): Morton-ordered misses share most of the path."""
-    if meta[META_ROOT] == 0:
-        return np.float32(0.0)
-    d = 0
-    if pstate[0] > 0:
-        x = code ^ pstate[1]
-        t = 0
-        while (x >> (3 * (t + 1))) != 0:
-            t += 1
-        d = 16 if x == 0 else 15 - t
-        if d > pstate[0]:
-            d = pstate[0]
-    nd = path[d]
-    while True:
-        if mask[nd] == 0 or d == 16:
-            pstate[0] = d
-            pstate[1] = code
-            return value[nd]
-        pos = (code >> (3 * (15 - d))) & 7
-        if mask[nd] & (1 << pos) == 0:
-            pstate[0] = d
-            pstate[1] = code
-            return np.float32(0.0)
-        nd = child[nd] + pos
-        d += 1
-        path[d] = nd
-
 
 @njit(cache=True, nogil=True)
-def cache_insert(packed, start, count, cell_code, cell_val, slots, child, mask, value, meta, hit, miss, cmin, cmax):
-    """Insert a scan's updates (code << 1 | occupied) from index `start`. A miss is seeded from the
-    octree (or the prior 0) before the update, so the cache always holds the value the octree
-    would. Buckets may exceed tau during a batch (as in the paper); when one runs out of its
-    `slots`, this returns early so the caller can widen the buckets and resume.
-    Returns (hits, index reached)."""
+def cache_insert(packed, start, count, cell_code, cell_val, slots, seed, hit, miss, cmin, cmax):
+    """Insert a scan's updates (code << 1 | occupied) from index `start`. A miss is seeded with
+    seed[i], the octree's value of that voxel (NaN: unknown, the prior 0), before the update, so
+    the cache always holds the value the octree would. Buckets may exceed tau during a batch (as
+    in the paper); when one runs out of its `slots`, this returns early so the caller can widen
+    the buckets and resume. Returns (hits, index reached)."""
     wmask = count.shape[0] - 1
     hits = 0
-    path = np.zeros(17, dtype=np.int64)  # root is slot 0
-    pstate = np.zeros(2, dtype=np.int64)
     for i in range(start, packed.shape[0]):
         code = packed[i] >> 1
         upd = hit if (packed[i] & 1) else miss
@@ -72,7 +35,8 @@ def cache_insert(packed, start, count, cell_code, cell_val, slots, child, mask, 
         else:
             if c == slots:
                 return hits, i
-            v = _octree_value(child, mask, value, meta, code, path, pstate) + upd
+            prior = seed[i]
+            v = (np.float32(0.0) if prior != prior else prior) + upd
             cell_code[base + c] = code
             count[b] = c + 1
         if v < cmin:

@@ -17,7 +17,7 @@ from numba import njit, prange
 
 from voxtool.kernels.morton import compact16, morton3
 from voxtool.kernels.prefetch import prefetch
-from voxtool.kernels.raycast import _coord_key
+from voxtool.kernels.raycast import _coord_key, ray_setup
 
 RECORD = np.dtype({
     "names": ["code", "last", "prev", "next", "l", "inf", "radius", "hits", "misses", "state", "in_occ", "ilist"],
@@ -36,7 +36,7 @@ M_HEAD, M_TAIL, M_HSIZE, M_FREE_TOP, M_LIVE, M_TOMBS, M_NEXT, M_NINF, M_BRICKS, 
 META_FIELDS = 10
 _MULT = np.int64(-7046029254386353131)
 if "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
-    # OpenMP first for trace_halves (its worker busy-waits between scans, so the next scan's
+    # OpenMP first for trace_parts (its workers busy-wait between scans, so the next scan's
     # cast starts at once); numba's default tries TBB first and warns on stderr when the TBB it
     # finds is older than it supports (open3d loads one)
     numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
@@ -272,52 +272,6 @@ def discretize(points, resolution, seen, slots, out):
     return n
 
 
-@njit(cache=True, inline="always")
-def ray_setup(points, i, origin, okx, oky, okz, resolution, max_range):
-    """Ray i of a scan from `origin` (key okx, oky, okz) as OctoMap casts it: computeUpdate's
-    max-range cut (the ray ends at max_range and marks no hit) and computeRayKeys'
-    initialisation (float32 direction and length, float64 tMax / tDelta). Returns (cut, end key,
-    tMax x/y/z, tDelta x/y/z, step signs x/y/z, length); an axis the ray does not move along has
-    tMax = tDelta = the largest float64, as has every axis of a ray that ends in its origin's voxel."""
-    res_factor = 1.0 / resolution
-    ox, oy, oz = origin[0], origin[1], origin[2]
-    ex, ey, ez = points[i, 0], points[i, 1], points[i, 2]
-    dx, dy, dz = ex - ox, ey - oy, ez - oz
-    cut = False
-    if max_range >= 0.0:
-        norm = np.sqrt(np.float64(dx * dx + dy * dy + dz * dz))
-        if norm > max_range:
-            cut = True
-            ln = np.float32(norm)
-            mr32 = np.float32(max_range)
-            ex, ey, ez = ox + (dx / ln) * mr32, oy + (dy / ln) * mr32, oz + (dz / ln) * mr32
-            dx, dy, dz = ex - ox, ey - oy, ez - oz
-    ekx = _coord_key(ex, res_factor)
-    eky = _coord_key(ey, res_factor)
-    ekz = _coord_key(ez, res_factor)
-    big = 1.7976931348623157e308
-    if ekx == okx and eky == oky and ekz == okz:  # no voxel to pass through (and no direction)
-        return cut, ekx, eky, ekz, big, big, big, big, big, big, 0, 0, 0, 0.0
-    length = np.float32(np.sqrt(np.float64(dx * dx + dy * dy + dz * dz)))
-    fx, fy, fz = dx / length, dy / length, dz / length
-    sx = 1 if fx > 0.0 else (-1 if fx < 0.0 else 0)
-    sy = 1 if fy > 0.0 else (-1 if fy < 0.0 else 0)
-    sz = 1 if fz > 0.0 else (-1 if fz < 0.0 else 0)
-    half = np.float64(np.float32(resolution * 0.5))
-    tx = ty = tz = big
-    ux = uy = uz = big
-    if sx != 0:
-        tx = ((np.float64(okx - 32768) + 0.5) * resolution + sx * half - np.float64(ox)) / np.float64(fx)
-        ux = resolution / abs(np.float64(fx))
-    if sy != 0:
-        ty = ((np.float64(oky - 32768) + 0.5) * resolution + sy * half - np.float64(oy)) / np.float64(fy)
-        uy = resolution / abs(np.float64(fy))
-    if sz != 0:
-        tz = ((np.float64(okz - 32768) + 0.5) * resolution + sz * half - np.float64(oz)) / np.float64(fz)
-        uz = resolution / abs(np.float64(fz))
-    return cut, ekx, eky, ekz, tx, ty, tz, ux, uy, uz, sx, sy, sz, np.float64(length)
-
-
 @njit(cache=True, nogil=True)
 def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slots, out):
     """One scan's rays with OctoMap's DDA and max-range rule (the same keys as
@@ -396,40 +350,28 @@ def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slo
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def trace_halves(points, cut, origin, resolution, max_range, bkeys, bmask, seen, slots, out, counts, merged):
-    """trace_present over points[:cut] and points[cut:] on two threads at once (row w of seen,
-    slots, out and counts is half w's; counts[w] = (n, steps)), then the two sorted lists merged
-    into `merged`. One numba parallel region rather than a Python thread pool: waking the pool's
-    worker and then this thread on its result took ~0.13 ms a scan, and OpenMP's worker, still
-    busy-waiting from the last scan, starts at once (docs/backends.md). Returns the merged
-    count, or -1 when a half's set would pass half full."""
-    for w in prange(2):
-        lo = 0 if w == 0 else cut
-        hi = cut if w == 0 else points.shape[0]
-        n, steps = trace_present(points[lo:hi], origin, resolution, max_range, bkeys, bmask, seen[w], slots[w], out[w])
+def trace_parts(points, cuts, origin, resolution, max_range, bkeys, bmask, seen, slots, out, counts, merged, spare):
+    """trace_present over the runs points[cuts[w]:cuts[w + 1]] on one thread each (row w of
+    seen, slots, out and counts is run w's; counts[w] = (n, steps)), then the sorted lists
+    merged into `merged` (`spare`: scratch of its size). One numba parallel region rather than a
+    Python thread pool: waking the pool's worker and then this thread on its result took ~0.13 ms
+    a scan, and OpenMP's workers, still busy-waiting from the last scan, start at once
+    (docs/backends.md). Returns the merged count, or -1 when a run's set would pass half full."""
+    parts = cuts.shape[0] - 1
+    for w in prange(parts):
+        n, steps = trace_present(points[cuts[w]:cuts[w + 1]], origin, resolution, max_range, bkeys, bmask, seen[w],
+                                 slots[w], out[w])
         counts[w, 0] = n
         counts[w, 1] = steps
-    if counts[0, 0] < 0 or counts[1, 0] < 0:
-        return -1
-    return merge_updates(out[0, :counts[0, 0]], out[1, :counts[1, 0]], merged)
-
-
-@njit(cache=True)
-def balanced_split(points, origin):
-    """The point index that splits a scan's rays into two halves of equal DDA work: a ray's
-    step count is the L1 length of its key difference, so the L1 length of the ray is the
-    weight (Livox scans are not uniform along the point order: half the points can be 20 %
-    more steps than the other half)."""
-    n = points.shape[0]
-    running = np.empty(n)  # summed ray lengths up to and including ray i
-    acc = 0.0
-    for i in range(n):
-        acc += abs(points[i, 0] - origin[0]) + abs(points[i, 1] - origin[1]) + abs(points[i, 2] - origin[2])
-        running[i] = acc
-    for i in range(n):
-        if running[i] >= 0.5 * acc:
-            return max(1, min(i + 1, n - 1))
-    return n // 2
+    for w in range(parts):
+        if counts[w, 0] < 0:
+            return -1
+    n = counts[0, 0]
+    merged[:n] = out[0, :n]
+    for w in range(1, parts):  # one run after another into the merged list
+        spare[:n] = merged[:n]
+        n = merge_updates(spare[:n], out[w, :counts[w, 0]], merged)
+    return n
 
 
 @njit(cache=True, nogil=True)

@@ -1,17 +1,15 @@
-"""Flat-array OctoMap octree: node pool kernels.
+"""Kernels of the `octree` backend: OctoMap 1.10's OcTree as voxel bricks under a derived tree.
 
-Layout (struct of arrays, one entry per node slot):
-  child[n]  int32  slot of the first of n's 8 child slots, or -1 when n has no children
-  mask[n]   uint8  bit i set when child i exists (OctoMap allows partial children)
-  value[n]  float32 log-odds (leaves) or max of the children (inner nodes)
-Children are allocated as blocks of 8 consecutive slots; block 0 holds the root in slot 0.
-`meta` = [top (next never-used slot), n_free_blocks, has_root]; `free` is a stack of freed
-block starts.
+OctoMap's update is per voxel: a voxel's log-odds start at 0 and each scan adds the hit or miss
+log-odds, clamped (its early abort for clamped leaves and its expansion of pruned nodes never
+change what a voxel holds). Its tree is then a function of the voxel values: a node exists when
+a voxel below it is known, and it is a leaf (pruned) when its 8 children exist and are leaves of
+one value. So the values are kept in bricks of 8x8x8 voxels, 512 float32 in Morton order (NaN:
+unknown), and the tree is derived where it is needed: leaves, node counts, leaf depths, .bt.
 
-Updates are applied in Morton order with a path stack: nodes shared with the previous key are
-not walked again, and each node left behind is finalized once (pruned when its 8 children are
-equal leaves, else set to the max of its children). The final tree equals OctoMap's eager
-per-update prune/updateOccupancyChildren; see docs/backends.md for the argument.
+A brick is the subtree of one depth-13 node: its 64 depth-15 nodes cover 8 consecutive values
+each, its 8 depth-14 nodes 64. A brick's pruning summary: l15 (bit g: depth-15 node g is a leaf),
+l14 (bit h: depth-14 node h is a leaf), and whether the brick's root is a leaf.
 """
 
 from __future__ import annotations
@@ -19,361 +17,221 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-META_TOP = 0
-META_NFREE = 1
-META_ROOT = 2
-FLT_MAX = np.float32(3.4028234663852886e38)
-BLOCK_RESERVE = 17 * 8  # slots one update may need at most (16 levels + 1)
-
-
-def new_pool(capacity_slots: int = 1 << 16):
-    cap = max(capacity_slots, 64)
-    child = np.full(cap, -1, dtype=np.int32)
-    mask = np.zeros(cap, dtype=np.uint8)
-    value = np.zeros(cap, dtype=np.float32)
-    free = np.zeros(cap // 8 + 1, dtype=np.int32)
-    meta = np.zeros(3, dtype=np.int64)
-    meta[META_TOP] = 8  # block 0 reserved for the root
-    return child, mask, value, free, meta
-
-
-@njit(cache=True)
-def slots_available(meta, capacity):
-    return (capacity - meta[META_TOP]) + meta[META_NFREE] * 8
-
-
-@njit(cache=True, inline="always")
-def _alloc_block(free, meta):
-    if meta[META_NFREE] > 0:
-        meta[META_NFREE] -= 1
-        return free[meta[META_NFREE]]
-    b = meta[META_TOP]
-    meta[META_TOP] += 8
-    return b
-
-
-@njit(cache=True, inline="always")
-def _common_depth(a, b):
-    """Depth of the deepest node shared by the paths to finest-level codes a and b."""
-    x = a ^ b
-    if x == 0:
-        return 16
-    t = 0  # index of the highest differing 3-bit level; sorted neighbours differ low down
-    while (x >> (3 * (t + 1))) != 0:
-        t += 1
-    return 15 - t
-
-
-@njit(cache=True)
-def _finalize(n, child, mask, value, free, meta):
-    """Prune n if its 8 children are equal leaves, else set it to the max of its children."""
-    m = mask[n]
-    if m == 0:
-        return
-    b = child[n]
-    if m == 0xFF:
-        v0 = value[b]
-        ok = mask[b] == 0
-        if ok:
-            for j in range(1, 8):
-                if mask[b + j] != 0 or value[b + j] != v0:
-                    ok = False
-                    break
-        if ok:
-            value[n] = v0
-            child[n] = -1
-            mask[n] = 0
-            free[meta[META_NFREE]] = b
-            meta[META_NFREE] += 1
-            return
-    best = -FLT_MAX
-    for j in range(8):
-        if m & (1 << j):
-            if value[b + j] > best:
-                best = value[b + j]
-    value[n] = best
-
+BRICK = 512  # voxels per brick
+BRICK_BITS = 9  # brick code = voxel code >> 9
+BRICK_DEPTH = 13  # the depth of a brick's root node
 
 ADD = 0  # items are code << 1 | occupied: add hit/miss log-odds, clamp (OctoMap updateNode)
-SET = 1  # items are codes, values[i] is the new log-odds (writing back cached voxels)
+SET = 1  # items are codes, values[i] the new log-odds (writing back cached voxels)
 
 
 @njit(cache=True, nogil=True)
-def apply_updates(child, mask, value, free, meta, path, pstate, items, values, mode, start, hit, miss, cmin, cmax):
-    """Apply leaf updates from index `start`; any order works, Morton order is fastest.
-
-    mode ADD: items are Morton code << 1 | occupied, OctoMap's clamped log-odds update with its
-    early abort for already clamped leaves. mode SET: items are Morton codes and the leaf is set
-    to values[i] (skipped when it already holds that value).
-    Returns the index where it stopped: len(items) when done, less when the pool needs to grow
-    (the caller grows the arrays and calls again; `path`/`pstate` carry the state across).
-    pstate = [deepest valid depth of path (-1: none), previous code].
-    """
-    n_upd = items.shape[0]
-    capacity = child.shape[0]
-    i = start
-    while i < n_upd:
-        if slots_available(meta, capacity) < BLOCK_RESERVE:
-            return i
-        if mode == ADD:
-            code = items[i] >> 1
-            upd = hit if (items[i] & 1) else miss
-        else:
-            code = items[i]
-            upd = values[i]
-        plen = pstate[0]
-        root_created = False
-        if meta[META_ROOT] == 0:
-            meta[META_ROOT] = 1
-            child[0] = -1
-            mask[0] = 0
-            value[0] = 0.0
-            path[0] = 0
-            plen = 0
-            common = 0
-            root_created = True
-        elif plen < 0:
-            path[0] = 0
-            common = 0
-        else:
-            common = _common_depth(code, pstate[1])
-            if common > plen:
-                common = plen
-            for d in range(plen, common, -1):
-                if d < 16:
-                    _finalize(path[d], child, mask, value, free, meta)
-        # read-only search (OctoMap's early abort when nothing would change)
-        d = common
-        nd = path[d]
-        found = True
-        while d < 16:
-            pos = (code >> (3 * (15 - d))) & 7
-            if mask[nd] & (1 << pos):
-                nd = child[nd] + pos
-                d += 1
-                path[d] = nd
-            elif mask[nd] == 0:
-                break
-            else:
-                found = False
-                break
-        if found and not root_created:
-            v = value[nd]
-            if mode == ADD:
-                unchanged = (upd >= 0 and v >= cmax) or (upd <= 0 and v <= cmin)
-            else:
-                unchanged = v == upd
-            if unchanged:
-                pstate[0] = d
-                pstate[1] = code
-                i += 1
-                continue
-        # modifying descent from where the search stopped
-        created = root_created and d == 0
-        while d < 16:
-            pos = (code >> (3 * (15 - d))) & 7
-            if mask[nd] & (1 << pos) == 0:
-                if mask[nd] == 0 and not created:
-                    # expand a pruned leaf: 8 children inherit its value
-                    b = _alloc_block(free, meta)
-                    for j in range(8):
-                        child[b + j] = -1
-                        mask[b + j] = 0
-                        value[b + j] = value[nd]
-                    child[nd] = b
-                    mask[nd] = 0xFF
-                    created = False
-                else:
-                    if mask[nd] == 0:
-                        child[nd] = _alloc_block(free, meta)
-                    s = child[nd] + pos
-                    child[s] = -1
-                    mask[s] = 0
-                    value[s] = 0.0
-                    mask[nd] |= 1 << pos
-                    created = True
-            else:
-                created = False
-            nd = child[nd] + pos
-            d += 1
-            path[d] = nd
-        if mode == ADD:
-            v = value[nd] + upd
-            if v < cmin:
-                v = cmin
-            elif v > cmax:
-                v = cmax
-        else:
-            v = upd
-        value[nd] = v
-        pstate[0] = 16
-        pstate[1] = code
-        i += 1
-    # batch done: finalize the last path up to the root
-    plen = pstate[0]
-    if plen >= 0:
-        for d in range(plen, -1, -1):
-            if d < 16:
-                _finalize(path[d], child, mask, value, free, meta)
-    pstate[0] = -1
-    return n_upd
-
-
-@njit(cache=True, nogil=True)
-def lookup(child, mask, value, meta, codes, out_value, out_depth):
-    """Value and depth of the leaf holding each finest-level code; depth -1 (NaN) where unknown.
-
-    Each walk restarts from the deepest node shared with the previous code, so Morton-sorted
-    queries cost little more than one level each."""
-    path = np.zeros(17, dtype=np.int64)
-    plen = -1
-    prev = np.int64(0)
-    for i in range(codes.shape[0]):
-        out_depth[i] = -1
-        out_value[i] = np.nan
-        if meta[META_ROOT] == 0:
-            continue
-        code = codes[i]
-        d = 0
-        if plen > 0:
-            d = _common_depth(code, prev)
-            if d > plen:
-                d = plen
-        nd = path[d]
-        while True:
-            if mask[nd] == 0 or d == 16:
-                if mask[nd] == 0:
-                    out_depth[i] = d
-                    out_value[i] = value[nd]
-                break
-            pos = (code >> (3 * (15 - d))) & 7
-            if mask[nd] & (1 << pos) == 0:
-                break
-            nd = child[nd] + pos
-            d += 1
-            path[d] = nd
-        plen = d
-        prev = code
-
-
-@njit(cache=True)
-def count_nodes(child, mask, meta):
-    """(leaf nodes, inner nodes, max depth-first stack) of the tree."""
-    if meta[META_ROOT] == 0:
-        return 0, 0
-    stack = np.empty(16 * 8 + 8, dtype=np.int64)
-    stack[0] = 0
-    sp = 1
-    leaves = 0
-    inner = 0
-    while sp > 0:
-        sp -= 1
-        nd = stack[sp]
-        m = mask[nd]
-        if m == 0:
-            leaves += 1
-            continue
-        inner += 1
-        b = child[nd]
-        for j in range(8):
-            if m & (1 << j):
-                stack[sp] = b + j
-                sp += 1
-    return leaves, inner
-
-
-@njit(cache=True)
-def extract_leaves(child, mask, value, meta, n_leaves):
-    """Leaves in Morton (depth-first) order: code of the first covered voxel, depth, value."""
-    codes = np.empty(n_leaves, dtype=np.int64)
-    depths = np.empty(n_leaves, dtype=np.uint8)
-    values = np.empty(n_leaves, dtype=np.float32)
-    if meta[META_ROOT] == 0:
-        return codes[:0], depths[:0], values[:0]
-    st_node = np.empty(16 * 8 + 8, dtype=np.int64)
-    st_code = np.empty(16 * 8 + 8, dtype=np.int64)
-    st_depth = np.empty(16 * 8 + 8, dtype=np.int64)
-    st_node[0] = 0
-    st_code[0] = 0
-    st_depth[0] = 0
-    sp = 1
+def brick_runs(items, shift):
+    """Runs of equal brick (items >> shift) in sorted items: (brick codes, starts), starts[k] the
+    first item of run k and starts[-1] = len(items)."""
+    n = items.shape[0]
+    count = 0
+    last = np.int64(-1)
+    for i in range(n):
+        b = items[i] >> shift
+        if b != last:
+            count += 1
+            last = b
+    codes = np.empty(count, dtype=np.int64)
+    starts = np.empty(count + 1, dtype=np.int64)
     k = 0
-    while sp > 0:
-        sp -= 1
-        nd = st_node[sp]
-        code = st_code[sp]
-        d = st_depth[sp]
-        m = mask[nd]
-        if m == 0:
-            codes[k] = code
-            depths[k] = d
-            values[k] = value[nd]
+    last = np.int64(-1)
+    for i in range(n):
+        b = items[i] >> shift
+        if b != last:
+            codes[k] = b
+            starts[k] = i
             k += 1
-            continue
-        b = child[nd]
-        # push in reverse so child 0 pops first (Morton order)
-        for j in range(7, -1, -1):
-            if m & (1 << j):
-                st_node[sp] = b + j
-                st_code[sp] = code | (np.int64(j) << (3 * (15 - d)))
-                st_depth[sp] = d + 1
-                sp += 1
-    return codes[:k], depths[:k], values[:k]
+            last = b
+    starts[count] = n
+    return codes, starts
 
 
-@njit(cache=True)
-def insert_leaves(child, mask, value, free, meta, path, pstate, codes, depths, values, start):
-    """Rebuild a tree from Morton-ordered leaves (snapshot load). Same resume protocol as
-    apply_updates; inner values and pruning are settled by the same finalize pass."""
-    n = codes.shape[0]
-    capacity = child.shape[0]
-    i = start
-    while i < n:
-        if slots_available(meta, capacity) < BLOCK_RESERVE:
-            return i
-        code = codes[i]
-        depth = depths[i]
-        plen = pstate[0]
-        if meta[META_ROOT] == 0:
-            meta[META_ROOT] = 1
-            child[0] = -1
-            mask[0] = 0
-            value[0] = 0.0
-            path[0] = 0
-            common = 0
-        elif plen < 0:
-            path[0] = 0
-            common = 0
+@njit(cache=True, nogil=True)
+def apply_bricks(vals, slots, fresh, init, starts, lo, hi, items, values, mode, hit, miss, cmin, cmax):
+    """Apply the updates of bricks lo..hi (items[starts[k]:starts[k + 1]] go to brick slots[k]).
+    A brick with fresh[k] is first filled with init[k] (NaN: unknown, or the value of the coarse
+    leaf it was split from). mode ADD: OctoMap's clamped log-odds update, a new voxel starting
+    at 0. mode SET: the voxel takes values[i]."""
+    for k in range(lo, hi):
+        base = slots[k] * BRICK
+        if fresh[k]:
+            for j in range(BRICK):
+                vals[base + j] = init[k]
+        if mode == ADD:
+            for i in range(starts[k], starts[k + 1]):
+                item = items[i]
+                at = base + ((item >> 1) & (BRICK - 1))
+                v = vals[at]
+                if v != v:
+                    v = np.float32(0.0)
+                v += hit if (item & 1) else miss
+                if v < cmin:
+                    v = cmin
+                elif v > cmax:
+                    v = cmax
+                vals[at] = v
         else:
-            common = _common_depth(code, pstate[1])
-            if common > plen:
-                common = plen
-            for d in range(plen, common, -1):
-                if d < 16:
-                    _finalize(path[d], child, mask, value, free, meta)
-        d = common
-        nd = path[d]
-        while d < depth:
-            pos = (code >> (3 * (15 - d))) & 7
-            if mask[nd] & (1 << pos) == 0:
-                if mask[nd] == 0:
-                    child[nd] = _alloc_block(free, meta)
-                s = child[nd] + pos
-                child[s] = -1
-                mask[s] = 0
-                value[s] = 0.0
-                mask[nd] |= 1 << pos
-            nd = child[nd] + pos
-            d += 1
-            path[d] = nd
-        value[nd] = values[i]
-        pstate[0] = depth
-        pstate[1] = code
-        i += 1
-    plen = pstate[0]
-    if plen >= 0:
-        for d in range(plen, -1, -1):
-            if d < 16:
-                _finalize(path[d], child, mask, value, free, meta)
-    pstate[0] = -1
+            for i in range(starts[k], starts[k + 1]):
+                vals[base + (items[i] & (BRICK - 1))] = values[i]
+
+
+@njit(cache=True, nogil=True)
+def fill_leaves(vals, slots, codes, depths, values):
+    """Write leaves of depth >= 13 (a snapshot's, a .bt file's) into their bricks: a leaf at
+    depth d covers 8^(16 - d) consecutive values of brick slots[i]."""
+    for i in range(codes.shape[0]):
+        at = slots[i] * BRICK + (codes[i] & (BRICK - 1))
+        span = np.int64(1) << (3 * (16 - np.int64(depths[i])))
+        for j in range(span):
+            vals[at + j] = values[i]
+
+
+@njit(cache=True, inline="always")
+def _all_equal(vals, at, n):
+    """The n values from `at` are known and equal."""
+    v0 = vals[at]
+    if v0 != v0:
+        return False
+    for j in range(1, n):
+        if vals[at + j] != v0:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def summarize(vals, slots, lo, hi, l15, l14, root_leaf, counts):
+    """Pruning summaries of bricks lo..hi (see the module docstring) and the (leaf, inner) node
+    counts of each brick's subtree (a brick whose root is a leaf counts as one leaf)."""
+    for k in range(lo, hi):
+        base = slots[k] * BRICK
+        m15 = np.int64(0)
+        known15 = np.int64(0)
+        voxels = 0
+        for g in range(64):
+            at = base + 8 * g
+            n = 0
+            for j in range(8):
+                if vals[at + j] == vals[at + j]:
+                    n += 1
+            voxels += n
+            if n:
+                known15 |= np.int64(1) << g
+                if n == 8 and _all_equal(vals, at, 8):
+                    m15 |= np.int64(1) << g
+        m14 = 0
+        for h in range(8):
+            if (m15 >> (8 * h)) & 0xFF == 0xFF and _all_equal(vals, base + 64 * h, 64):
+                m14 |= 1 << h
+        is_leaf = m14 == 0xFF and _all_equal(vals, base, BRICK)
+        l15[k] = m15
+        l14[k] = m14
+        root_leaf[k] = is_leaf
+        if is_leaf:
+            counts[k, 0] = 1
+            counts[k, 1] = 0
+            continue
+        leaves = 0
+        inner = 1  # the brick's root
+        for h in range(8):
+            if (known15 >> (8 * h)) & 0xFF == 0:
+                continue
+            if (m14 >> h) & 1:
+                leaves += 1
+                continue
+            inner += 1
+            for g in range(8 * h, 8 * h + 8):
+                if (known15 >> g) & 1 == 0:
+                    continue
+                if (m15 >> g) & 1:
+                    leaves += 1
+                else:
+                    inner += 1
+                    for j in range(8):
+                        if vals[base + 8 * g + j] == vals[base + 8 * g + j]:
+                            leaves += 1
+        counts[k, 0] = leaves
+        counts[k, 1] = inner
+
+
+@njit(cache=True, nogil=True)
+def brick_leaves(vals, slots, brick_codes, lo, hi, l15, l14, offsets, codes, depths, values):
+    """The leaves of bricks lo..hi (roots not leaves) in Morton order, from codes[offsets[k]]."""
+    for k in range(lo, hi):
+        base = slots[k] * BRICK
+        first = brick_codes[k] << BRICK_BITS
+        n = offsets[k]
+        for h in range(8):
+            if (l14[k] >> h) & 1:
+                codes[n] = first | (h << 6)
+                depths[n] = 14
+                values[n] = vals[base + 64 * h]
+                n += 1
+                continue
+            for g in range(8 * h, 8 * h + 8):
+                if (l15[k] >> g) & 1:
+                    codes[n] = first | (g << 3)
+                    depths[n] = 15
+                    values[n] = vals[base + 8 * g]
+                    n += 1
+                    continue
+                for j in range(8 * g, 8 * g + 8):
+                    v = vals[base + j]
+                    if v == v:
+                        codes[n] = first | j
+                        depths[n] = 16
+                        values[n] = v
+                        n += 1
+
+
+@njit(cache=True, nogil=True)
+def leaf_depths(codes, brick_index, l15, l14, root_leaf, out):
+    """Depth of the leaf holding each voxel code inside its brick (brick_index[i] into the
+    summaries; -1: no brick, left as is): 16, or 15 / 14 / 13 where the voxel's node is pruned."""
+    for i in range(codes.shape[0]):
+        k = brick_index[i]
+        if k < 0:
+            continue
+        v = codes[i] & (BRICK - 1)
+        if root_leaf[k]:
+            out[i] = 13
+        elif (l14[k] >> (v >> 6)) & 1:
+            out[i] = 14
+        elif (l15[k] >> (v >> 3)) & 1:
+            out[i] = 15
+        else:
+            out[i] = 16
+
+
+@njit(cache=True, nogil=True)
+def collapse_leaves(codes, depths, values, deepest):
+    """OctoMap's pruning of Morton-ordered, non-overlapping leaves: 8 sibling leaves of one value
+    at a depth <= `deepest` become their parent, repeatedly (one pass: the children of a node
+    arrive together). Returns the count; the pruned leaves are left in the input's first slots."""
+    n = 0
+    for i in range(codes.shape[0]):
+        codes[n] = codes[i]
+        depths[n] = depths[i]
+        values[n] = values[i]
+        n += 1
+        while n >= 8:
+            d = np.int64(depths[n - 1])
+            if d == 0 or d > deepest:
+                break
+            shift = 3 * (17 - d)
+            top = codes[n - 1] >> shift
+            same = True
+            for j in range(n - 8, n - 1):
+                if depths[j] != d or codes[j] >> shift != top or values[j] != values[n - 1]:
+                    same = False
+                    break
+            if not same:
+                break
+            n -= 7  # the first of the 8 children starts where its parent does
+            depths[n - 1] = d - 1
     return n

@@ -15,9 +15,11 @@ import numpy as np
 from voxtool.config import MapParams, SensorModel, logodds
 from voxtool.errors import ParameterError
 from voxtool.kernels import hashmap as K
+from voxtool.kernels.raycast import balanced_cuts
 from voxtool.keys import coords_to_keys
 from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
-from voxtool.maps.octree import SMALL_SCAN, OctreeMap, merge_rays
+from voxtool.maps.octree import RAYS_PER_PART, SMALL_SCAN, OctreeMap, merge_rays
+from voxtool.parallel import resolve_threads
 from voxtool.sources.scan import Scan
 
 SCHEDULABLE = ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")
@@ -63,8 +65,9 @@ class HashVoxelMap:
     def __init__(self, params: MapParams, sensor: SensorModel, p_init: float = 0.5, n_lim: int = -1,
                  d_in: float = -1.0, d_inf: float = 0.2, inf_range: float = -1.0, ttl: float = -1.0,
                  p_free: float = 0.4, schedule: list | None = None, rate_hz: float = 10.0,
-                 discretize: int = 1) -> None:
+                 discretize: int = 1, threads: int = 0) -> None:
         self.params, self.sensor = params, sensor
+        self.threads = resolve_threads(threads)  # ray casting: a run of rays per thread
         if discretize not in (0, 1):
             raise ParameterError(f"discretize={discretize} must be 1 (one ray per end voxel, to its centre: the "
                                  "paper, OctoMap's discretize) or 0 (one ray per point, OctoMap's default)")
@@ -173,14 +176,14 @@ class HashVoxelMap:
 
     # -- MapBackend ------------------------------------------------------------------------------
     def warm_up(self) -> None:
-        OctreeMap(self.params, self.sensor).warm_up()
-        probe = HashVoxelMap(MapParams(resolution=0.5), self.sensor, n_lim=1, d_inf=0.5)
+        OctreeMap(self.params, self.sensor, threads=1).warm_up()
+        probe = HashVoxelMap(MapParams(resolution=0.5), self.sensor, n_lim=1, d_inf=0.5, threads=self.threads)
         for x in (1.0, 3.0):
             probe.integrate(Scan(np.array([[x, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
         # the table rebuilds run only when a table grows: load them now, not in a timed scan
         K.rehash(probe.tab, probe.rec, int(probe.meta[K.M_NEXT]))
         probe.query(np.zeros(1, np.int64))
-        probe.discretize = 0  # SMALL_SCAN rays (to one voxel): the two-thread path
+        probe.discretize = 0  # SMALL_SCAN rays (to one voxel): the parallel path
         probe._trace(Scan(np.tile(np.array([[1.0, 0.5, 0.25]], np.float32), (SMALL_SCAN, 1)), np.zeros(3, np.float32)))
         K.brick_rehash(probe.bkeys, probe.bmask, *K.new_bricks(probe.bkeys.shape[0]))
 
@@ -232,24 +235,28 @@ class HashVoxelMap:
             return np.empty(0, np.int64), 0
         while True:
             size = self._set_size
-            if self._bufs is None or self._bufs[0].shape[1] != size:
-                # de-duplicating sets (all EMPTY; the kernels leave them so) and scratch, one row per half
-                self._bufs = (np.full((2, size), K.EMPTY, dtype=np.int64), np.empty((2, size // 2 + 1), np.int64),
-                              np.empty((2, size // 2 + 1), np.int64), np.zeros((2, 2), np.int64),
-                              np.empty(size + 2, np.int64))
-            seen, slots, out, counts, merged = self._bufs
+            parts = min(self.threads, numba.config.NUMBA_NUM_THREADS, max(1, n // RAYS_PER_PART))
             if n < SMALL_SCAN or not _Parallel.usable:  # one thread (a small scan: a launch costs more than it saves)
+                parts = 1
+            if self._bufs is None or self._bufs[0].shape != (parts, size):
+                # de-duplicating sets (all EMPTY; the kernels leave them so) and scratch, one row per run
+                run = size // 2 + 1
+                self._bufs = (np.full((parts, size), K.EMPTY, dtype=np.int64), np.empty((parts, run), np.int64),
+                              np.empty((parts, run), np.int64), np.zeros((parts, 2), np.int64),
+                              np.empty(parts * run, np.int64), np.empty(parts * run, np.int64))
+            seen, slots, out, counts, merged, spare = self._bufs
+            if parts == 1:
                 k, steps = K.trace_present(scan.points, scan.origin, self.params.resolution, self.params.max_range,
                                            self.bkeys, self.bmask, seen[0], slots[0], out[0])
                 if k >= 0:
                     return out[0, :k].copy(), steps
             else:
-                cut = K.balanced_split(scan.points, scan.origin)
+                cuts = balanced_cuts(scan.points, scan.origin, parts)
                 with PARALLEL_LAUNCH:
                     _Parallel.launched = True
-                    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))  # two halves: two threads
-                    k = K.trace_halves(scan.points, cut, scan.origin, self.params.resolution, self.params.max_range,
-                                       self.bkeys, self.bmask, seen, slots, out, counts, merged)
+                    numba.set_num_threads(parts)  # a thread a run
+                    k = K.trace_parts(scan.points, cuts, scan.origin, self.params.resolution, self.params.max_range,
+                                      self.bkeys, self.bmask, seen, slots, out, counts, merged, spare)
                 if k >= 0:
                     return merged[:k].copy(), int(counts[:, 1].sum())
             self._set_size *= 2  # rare: the sets grow to the busiest scan seen

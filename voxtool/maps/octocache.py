@@ -4,9 +4,10 @@ A cache of w buckets (w a power of two, bucket = Morton code mod w) holds voxels
 accumulated log-odds. A scan's updates go to the cache (a miss is seeded from the octree, so the
 cache always holds what the octree would); afterwards every bucket above `tau` cells evicts its
 oldest cells, which are written back to the octree in the chosen order. Queries look in the cache
-first, then the octree, so every answer equals the plain octree's. With threads=2 the write-back
-runs on a second thread while the next scan is ray-cast; cache insertion waits for it, because
-a cache miss reads the octree.
+first, then the octree, so every answer equals the plain octree's. With overlap=1 (the paper's
+two threads) the write-back runs on its own thread while the next scan is ray-cast; cache
+insertion waits for it, because a cache miss reads the octree. `threads` is the wrapped octree's
+(ray casting and shard updates), as for the `octree` backend.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 from voxtool.config import MapParams, SensorModel
 from voxtool.errors import ParameterError
 from voxtool.kernels import cache as C
+from voxtool.kernels import octree as K
 from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
 from voxtool.maps.octree import OctreeMap
 from voxtool.sources.scan import Scan
@@ -39,7 +41,7 @@ class CacheCounters:
     raycast: float = 0.0
     insert: float = 0.0
     evict: float = 0.0
-    octree_update: float = 0.0  # on thread 2 when threads == 2
+    octree_update: float = 0.0  # on the write-back thread when overlap == 1
     wait: float = 0.0  # thread 1 waiting for thread 2
 
 
@@ -49,24 +51,25 @@ class OctoCacheMap:
     name = "octocache"
 
     def __init__(self, params: MapParams, sensor: SensorModel, buckets: int | None = None, tau: int = 4,
-                 threads: int = 1, order: str = "morton", seed: int = 0) -> None:
+                 overlap: int = 0, order: str = "morton", seed: int = 0, threads: int = 0) -> None:
         if buckets is not None and (buckets < 1 or buckets & (buckets - 1)):
             raise ParameterError(f"buckets={buckets} must be a power of two")
         if not 1 <= tau <= 64:
             raise ParameterError(f"tau={tau} must lie in 1..64")
-        if threads not in (1, 2):
-            raise ParameterError(f"threads={threads} must be 1 or 2")
+        if overlap not in (0, 1):
+            raise ParameterError(f"overlap={overlap} must be 0 (write-back on the calling thread) or 1 (on its own)")
         if order not in ORDERS:
             raise ParameterError(f"order '{order}' is not one of {', '.join(ORDERS)}")
         self.params, self.sensor = params, sensor
-        self.tree = OctreeMap(params, sensor)
-        self.tau, self.threads, self.order = tau, threads, order
+        self.tree = OctreeMap(params, sensor, threads=threads)
+        self.threads = self.tree.threads
+        self.tau, self.overlap, self.order = tau, overlap, order
         self.slots = 2 * tau  # cells per bucket; widened when a batch overflows a bucket
         self.buckets = buckets
         self.count: np.ndarray | None = None
         self.counters = CacheCounters()
         self._rng = np.random.default_rng(seed)
-        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="voxtool-octree") if threads == 2 else None
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="voxtool-octree") if overlap else None
         self._pending: Future | None = None
         self._lock = threading.Lock()
         if buckets is not None:
@@ -112,7 +115,7 @@ class OctoCacheMap:
         t0 = time.perf_counter()
         if codes.shape[0]:
             with self._lock:
-                self.tree.pool.set_values(codes, vals, self.sensor)
+                self.tree.apply_updates(codes, K.SET, vals)
         self.counters.written_to_octree += int(codes.shape[0])
         return time.perf_counter() - t0
 
@@ -127,7 +130,7 @@ class OctoCacheMap:
     def warm_up(self) -> None:
         """Load the octree and cache kernels on a throwaway instance (JIT cost kept out of timings)."""
         self.tree.warm_up()
-        probe = OctoCacheMap(MapParams(resolution=0.5), self.sensor, buckets=1024, tau=1, threads=1, order=self.order)
+        probe = OctoCacheMap(MapParams(resolution=0.5), self.sensor, buckets=1024, tau=1, order=self.order, threads=1)
         probe.integrate(Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
         probe.query(np.zeros(1, dtype=np.int64))
         probe.flush()
@@ -143,11 +146,11 @@ class OctoCacheMap:
         t1 = time.perf_counter()
         if self.count is None:
             self._allocate(self._sizing_rule(packed.shape[0]))
-        t = self.tree.pool
+        seed = self.tree.query(packed >> 1)  # what a miss starts from: the octree's value (NaN: unknown)
         hits, start = 0, 0
         while True:
-            h, start = C.cache_insert(packed, start, self.count, self.cell_code, self.cell_val, self.slots,
-                                      t.child, t.mask, t.value, t.meta, np.float32(s.hit_log), np.float32(s.miss_log),
+            h, start = C.cache_insert(packed, start, self.count, self.cell_code, self.cell_val, self.slots, seed,
+                                      np.float32(s.hit_log), np.float32(s.miss_log),
                                       np.float32(s.clamp_min_log), np.float32(s.clamp_max_log))
             hits += h
             if start >= packed.shape[0]:
@@ -224,7 +227,7 @@ class OctoCacheMap:
         self.tree.load_state(arrays)
 
     def extra_meta(self) -> dict[str, Any]:
-        return {"buckets": self.buckets, "tau": self.tau, "threads": self.threads, "order": self.order}
+        return {"buckets": self.buckets, "tau": self.tau, "overlap": self.overlap, "order": self.order}
 
     def extra_stats(self) -> dict[str, Any]:
         c = self.counters

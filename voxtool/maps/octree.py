@@ -1,112 +1,33 @@
-"""The `octree` backend: OctoMap 1.10's OcTree semantics in flat arrays, updated in Morton order."""
+"""The `octree` backend: OctoMap 1.10's OcTree semantics, as Morton-prefix shards updated in
+parallel (voxtool.maps.shards)."""
 
 from __future__ import annotations
 
-import os
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
 from voxtool.config import MapParams, SensorModel
 from voxtool.kernels import octree as K
-from voxtool.kernels.raycast import BrickBuffers, bricks_to_packed, ray_signatures, scan_bricks
+from voxtool.kernels.raycast import (
+    BrickBuffers,
+    balanced_cuts,
+    brick_voxels,
+    expand_bricks,
+    ray_signatures,
+    scan_bricks,
+)
 from voxtool.keys import coords_to_keys
 from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
+from voxtool.maps.shards import DEFAULT_SHARD_DEPTH, ShardedOctree
+from voxtool.parallel import resolve_threads, run_parts
 from voxtool.sources.scan import Scan
 
-BYTES_PER_SLOT = 4 + 1 + 4  # child int32, mask uint8, value float32
-_NO_VALUES = np.zeros(0, dtype=np.float32)
-
-
-class OctreePool:
-    """Node pool plus the resumable batch-update protocol of `voxtool.kernels.octree`."""
-
-    def __init__(self, capacity_slots: int = 1 << 16) -> None:
-        self.child, self.mask, self.value, self.free, self.meta = K.new_pool(capacity_slots)
-        self.path = np.zeros(17, dtype=np.int64)
-        self.pstate = np.array([-1, 0], dtype=np.int64)
-
-    def _grow(self) -> None:
-        old = self.child.shape[0]
-        new = (old * 3 // 2) // 8 * 8 + 8 * 4096  # 1.5x (+4096 blocks): less idle capacity than doubling
-        self.child = np.concatenate([self.child, np.full(new - old, -1, dtype=np.int32)])
-        self.mask = np.concatenate([self.mask, np.zeros(new - old, dtype=np.uint8)])
-        self.value = np.concatenate([self.value, np.zeros(new - old, dtype=np.float32)])
-        self.free = np.concatenate([self.free, np.zeros(new // 8 + 1 - self.free.shape[0], dtype=np.int32)])
-
-    def _run(self, items: np.ndarray, values: np.ndarray, mode: int, sensor: SensorModel) -> None:
-        hit, miss = np.float32(sensor.hit_log), np.float32(sensor.miss_log)
-        cmin, cmax = np.float32(sensor.clamp_min_log), np.float32(sensor.clamp_max_log)
-        start = 0
-        while True:
-            start = K.apply_updates(
-                self.child, self.mask, self.value, self.free, self.meta, self.path, self.pstate,
-                items, values, mode, start, hit, miss, cmin, cmax,
-            )
-            if start >= items.shape[0]:
-                return
-            self._grow()
-
-    def apply(self, packed: np.ndarray, sensor: SensorModel) -> None:
-        """Apply updates (code << 1 | occupied) with OctoMap's rule; Morton order is fastest."""
-        self._run(packed, _NO_VALUES, K.ADD, sensor)
-
-    def set_values(self, codes: np.ndarray, values: np.ndarray, sensor: SensorModel) -> None:
-        """Overwrite finest-level voxels with log-odds `values` (cache write-back)."""
-        self._run(codes, np.ascontiguousarray(values, dtype=np.float32), K.SET, sensor)
-
-    def load(self, leaves: Leaves) -> None:
-        start = 0
-        while True:
-            start = K.insert_leaves(
-                self.child, self.mask, self.value, self.free, self.meta, self.path, self.pstate,
-                leaves.codes, leaves.depths, leaves.values, start,
-            )
-            if start >= len(leaves):
-                return
-            self._grow()
-
-    def query(self, codes: np.ndarray) -> np.ndarray:
-        codes = np.ascontiguousarray(codes, dtype=np.int64)
-        out = np.empty(codes.shape[0], dtype=np.float32)
-        depth = np.empty(codes.shape[0], dtype=np.int64)
-        K.lookup(self.child, self.mask, self.value, self.meta, codes, out, depth)
-        return out
-
-    def node_counts(self) -> tuple[int, int]:
-        leaves, inner = K.count_nodes(self.child, self.mask, self.meta)
-        return int(leaves), int(inner)
-
-    def leaves(self) -> Leaves:
-        n_leaves, _ = self.node_counts()
-        codes, depths, values = K.extract_leaves(self.child, self.mask, self.value, self.meta, n_leaves)
-        return Leaves(codes, depths, values)
-
-    def used_slots(self) -> int:
-        return int(self.meta[K.META_TOP] - 8 * self.meta[K.META_NFREE])
-
-    def memory_bytes(self) -> int:
-        """Bytes of the allocated pool arrays (what the process holds for the tree)."""
-        return int(self.child.nbytes + self.mask.nbytes + self.value.nbytes + self.free.nbytes)
-
-
-RAY_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="voxtool-raycast")
-
-
-def _new_ray_pool_in_child() -> None:
-    # a forked child inherits the pool but none of its threads: work submitted to it would wait
-    # forever (a multiprocessing worker casting rays hung). The child gets a pool of its own.
-    global RAY_POOL
-    RAY_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="voxtool-raycast")
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_new_ray_pool_in_child)
-_SPLITS = 2  # this machine class has 2 cores; each thread traces half of the rays
 SMALL_SCAN = 2_000  # points; below this one thread traces the whole scan
+RAYS_PER_PART = 1_000  # at least this many rays per thread: a hand-off costs ~0.1 ms
+BRICKS_PER_PART = 2_048  # likewise, bricks per thread when expanding them to voxel updates
 _BUFFERS = threading.local()
 
 
@@ -142,7 +63,36 @@ def merge_rays(scan: Scan, params: MapParams) -> Scan:
     return Scan(scan.points[keep], scan.origin, scan.index, scan.stamp_ns, scan.source)
 
 
-def scan_updates(scan: Scan, params: MapParams) -> tuple[np.ndarray, int, int]:
+def ray_parts(scan: Scan, threads: int) -> list[tuple[int, int]]:
+    """Runs of a scan's rays of about equal work, one per thread (one for a small scan)."""
+    n = scan.points.shape[0]
+    parts = 1 if n < SMALL_SCAN else max(1, min(threads, n // RAYS_PER_PART))
+    if parts == 1:
+        return [(0, n)]
+    cuts = balanced_cuts(scan.points, scan.origin, parts)
+    return [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+
+
+def bricks_to_updates(bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray, threads: int) -> np.ndarray:
+    """Morton-sorted voxel updates (code << 1 | occupied) of a scan's bricks, expanded on
+    `threads` threads, each a run of brick codes into its own part of the output."""
+    order = np.argsort(bricks, kind="stable")
+    n = order.shape[0]
+    parts = max(1, min(threads, n // BRICKS_PER_PART))
+    cuts = [n * k // parts for k in range(parts + 1)]
+    sorted_codes = bricks[order]
+    for k in range(1, parts):  # equal codes (a brick several threads filled) stay in one run
+        cuts[k] = int(np.searchsorted(sorted_codes, sorted_codes[cuts[k]], side="left"))
+    runs = [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+    counts = run_parts(threads, lambda r: brick_voxels(bricks, touched, order, *r), runs)
+    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    out = np.empty(int(starts[-1]), dtype=np.int64)
+    run_parts(threads, lambda k: expand_bricks(bricks, touched, occ, order, *runs[k], out, starts[k]),
+              list(range(len(runs))))
+    return out
+
+
+def scan_updates(scan: Scan, params: MapParams, threads: int = 1) -> tuple[np.ndarray, int, int]:
     """Morton-sorted (code << 1 | occupied) voxel updates of one scan, its DDA step count, and
     how many rays were merged into others (0 unless params.merge_rays)."""
     n = scan.points.shape[0]
@@ -154,23 +104,21 @@ def scan_updates(scan: Scan, params: MapParams) -> tuple[np.ndarray, int, int]:
     if params.merge_rays:
         scan = merge_rays(scan, params)
         merged = n - scan.points.shape[0]
-        n = scan.points.shape[0]
-    if n < SMALL_SCAN:  # thread hand-off costs more than it saves on small scans
-        parts = [_trace_part(scan, params, 0, n)]
+    parts = run_parts(threads, lambda run: _trace_part(scan, params, *run), ray_parts(scan, threads))
+    if len(parts) == 1:
+        bricks, touched, occ, steps = parts[0]
     else:
-        cuts = np.linspace(0, n, _SPLITS + 1).astype(int)
-        parts = list(RAY_POOL.map(lambda k: _trace_part(scan, params, cuts[k], cuts[k + 1]), range(_SPLITS)))
-    bricks = np.concatenate([p[0] for p in parts])
-    touched = np.concatenate([p[1] for p in parts])
-    occ = np.concatenate([p[2] for p in parts])
-    order = np.argsort(bricks, kind="stable")
-    return bricks_to_packed(bricks, touched, occ, order), int(sum(p[3] for p in parts)), merged
+        bricks = np.concatenate([p[0] for p in parts])
+        touched = np.concatenate([p[1] for p in parts])
+        occ = np.concatenate([p[2] for p in parts])
+        steps = sum(p[3] for p in parts)
+    return bricks_to_updates(bricks, touched, occ, threads), int(steps), merged
 
 
-def prepare_scan(scan: Scan, params: MapParams) -> PreparedScan:
+def prepare_scan(scan: Scan, params: MapParams, threads: int = 1) -> PreparedScan:
     """A scan's voxel updates, timed, with the ray-merging count when it is enabled."""
     t0 = time.perf_counter()
-    packed, steps, merged = scan_updates(scan, params)
+    packed, steps, merged = scan_updates(scan, params, threads)
     return PreparedScan(packed, steps, time.perf_counter() - t0, int(scan.points.shape[0]), merged)
 
 
@@ -178,11 +126,13 @@ def warm_up_kernels() -> None:
     """Load (or compile, first time on a machine) the kernels on a tiny scan, so the JIT cost is
     reported apart from the first scan's latency."""
     scan = Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32))
-    pool = OctreePool(64)
-    pool.apply(scan_updates(scan, MapParams(resolution=0.5))[0], SensorModel())
-    merge_rays(scan, MapParams(resolution=0.5))
-    pool.leaves()
-    pool.query(np.zeros(1, dtype=np.int64))
+    params = MapParams(resolution=0.5)
+    tree = ShardedOctree()
+    tree.apply(scan_updates(scan, params)[0], K.ADD, hit=0.85, miss=-0.4, cmin=-2.0, cmax=3.5)
+    balanced_cuts(scan.points, scan.origin, 2)
+    merge_rays(scan, params)
+    tree.leaves()
+    tree.query(np.zeros(1, dtype=np.int64))
 
 
 class OctreeMap:
@@ -190,22 +140,33 @@ class OctreeMap:
 
     name = "octree"
 
-    def __init__(self, params: MapParams, sensor: SensorModel) -> None:
+    def __init__(self, params: MapParams, sensor: SensorModel, threads: int = 0,
+                 shard_depth: int = DEFAULT_SHARD_DEPTH) -> None:
         self.params = params
         self.sensor = sensor
-        self.pool = OctreePool()
+        self.threads = resolve_threads(threads)
+        self.shard_depth = shard_depth
+        self.tree = ShardedOctree(shard_depth, self.threads)
 
     def warm_up(self) -> None:
         warm_up_kernels()
 
     def prepare(self, scan: Scan) -> PreparedScan:
         """Ray casting: independent of the map, so it may run ahead on another thread."""
-        return prepare_scan(scan, self.params)
+        return prepare_scan(scan, self.params, self.threads)
+
+    def apply_updates(self, items: np.ndarray, mode: int = K.ADD, values: np.ndarray | None = None) -> None:
+        """Fold Morton-sorted updates into the tree: `code << 1 | occupied` (ADD), or codes
+        with their new log-odds (SET)."""
+        s = self.sensor
+        extra = {} if values is None else {"values": np.ascontiguousarray(values, dtype=np.float32)}
+        self.tree.apply(items, mode, hit=s.hit_log, miss=s.miss_log, cmin=s.clamp_min_log, cmax=s.clamp_max_log,
+                        **extra)
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         """Tree update; prepared scans must be applied in scan order."""
         t0 = time.perf_counter()
-        self.pool.apply(prepared.packed, self.sensor)
+        self.apply_updates(prepared.packed)
         return IntegrateTiming(raycast=prepared.seconds, update=time.perf_counter() - t0,
                                voxel_updates=int(prepared.packed.shape[0]), ray_steps=prepared.steps,
                                rays=prepared.rays, merged_rays=prepared.merged_rays)
@@ -214,27 +175,32 @@ class OctreeMap:
         return self.apply(self.prepare(scan))
 
     def query(self, codes: np.ndarray) -> np.ndarray:
-        return self.pool.query(codes)
+        return self.tree.values(codes)
+
+    def query_depth(self, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(log-odds, depth of the answering leaf) at finest-level codes; NaN / -1 unknown."""
+        return self.tree.query(codes)
 
     def leaves(self) -> Leaves:
-        return self.pool.leaves()
+        return self.tree.leaves()
 
     def node_counts(self) -> tuple[int, int]:
-        return self.pool.node_counts()
+        return self.tree.node_counts()
 
     def memory_bytes(self) -> int:
-        return self.pool.memory_bytes()
+        return self.tree.memory_bytes()
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         leaves = self.leaves()
         return {"leaf_codes": leaves.codes, "leaf_depths": leaves.depths, "leaf_values": leaves.values}
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
-        self.pool = OctreePool(max(1 << 16, 2 * arrays["leaf_codes"].shape[0]))
-        self.pool.load(Leaves(arrays["leaf_codes"], arrays["leaf_depths"], arrays["leaf_values"]))
+        self.tree = ShardedOctree(self.shard_depth, self.threads)
+        self.tree.load(Leaves(arrays["leaf_codes"], arrays["leaf_depths"], arrays["leaf_values"]))
 
     def extra_meta(self) -> dict[str, Any]:
-        return {}
+        return {}  # threads and shard depth change how fast a map is built, never what it holds
 
     def extra_stats(self) -> dict[str, Any]:
-        return {"bytes_per_node": BYTES_PER_SLOT, "pool_slots_used": self.pool.used_slots()}
+        return {"bricks": self.tree.n_bricks, "shards": self.tree.n_rows, "shard_depth": self.tree.depth,
+                "threads": self.threads}

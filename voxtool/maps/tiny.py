@@ -20,6 +20,7 @@ from voxtool.errors import ParameterError
 from voxtool.kernels import tiny as K
 from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
 from voxtool.maps.octree import OctreeMap, prepare_scan
+from voxtool.parallel import resolve_threads
 from voxtool.sources.scan import Scan
 
 LEVEL_STEP_LOG = 0.4054651  # log-odds of one level: OctoMap's miss
@@ -29,12 +30,13 @@ class TinyMap:
     name = "tiny"
 
     def __init__(self, params: MapParams, sensor: SensorModel, pool_blocks: int = 4096, map_size: float | None = None,
-                 hit: int = 2, miss: int = 1, prior: int = 6) -> None:
+                 hit: int = 2, miss: int = 1, prior: int = 6, threads: int = 0) -> None:
         if not 2 <= pool_blocks <= (1 << 28):
             raise ParameterError(f"pool_blocks={pool_blocks} must lie in 2..2^28")
         if not (1 <= prior < 15 and 1 <= hit <= 14 and 1 <= miss <= 14):
             raise ParameterError(f"tiny levels hit={hit} miss={miss} prior={prior} out of range (levels are 1..15)")
         self.params, self.sensor = params, sensor
+        self.threads = resolve_threads(threads)  # ray casting (the pool itself is updated by one)
         size = map_size if map_size is not None else params.resolution * 2048
         if not (size > 0 and np.isfinite(size)):
             raise ParameterError(f"map_size={size} must be positive")
@@ -51,13 +53,13 @@ class TinyMap:
 
     # -- MapBackend -------------------------------------------------------------------------
     def warm_up(self) -> None:
-        OctreeMap(self.params, self.sensor).warm_up()
-        probe = TinyMap(MapParams(resolution=0.5), self.sensor, pool_blocks=self.pool_blocks, map_size=8.0)
+        OctreeMap(self.params, self.sensor, threads=1).warm_up()
+        probe = TinyMap(MapParams(resolution=0.5), self.sensor, pool_blocks=self.pool_blocks, map_size=8.0, threads=1)
         probe.integrate(Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
         probe.leaves()
 
     def prepare(self, scan: Scan) -> PreparedScan:
-        return prepare_scan(scan, self.params)
+        return prepare_scan(scan, self.params, self.threads)
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         t0 = time.perf_counter()

@@ -1,0 +1,59 @@
+"""Threads: how many this process may use, and the pools voxtool's kernels run on.
+
+Kernels release the GIL, so plain threads run them on every core. One pool per thread count
+is shared by every map of the process (ray casting and tree updates take turns on it).
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+from voxtool.errors import ParameterError
+
+MAX_THREADS = 1024
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def resolve_threads(threads: int | None) -> int:
+    """A thread count as given (`--threads`), or the usable cores for None / 0."""
+    if threads is None or threads == 0:
+        return usable_cores()
+    if not 1 <= threads <= MAX_THREADS:
+        raise ParameterError(f"threads={threads} must lie in 1..{MAX_THREADS} (0: the usable cores)")
+    return int(threads)
+
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
+def thread_pool(threads: int) -> ThreadPoolExecutor:
+    """The shared pool of `threads` worker threads."""
+    pool = _POOLS.get(threads)
+    if pool is None:
+        pool = _POOLS[threads] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="voxtool-worker")
+    return pool
+
+
+def _forget_pools_in_child() -> None:
+    # a forked child inherits the pools but none of their threads: work submitted to one would
+    # wait forever (a multiprocessing worker casting rays hung). The child starts pools anew.
+    _POOLS.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pools_in_child)
+
+
+def run_parts(threads: int, work, parts: list) -> list:
+    """[work(p) for p in parts], spread over the pool (on this thread when one thread or part)."""
+    if threads <= 1 or len(parts) <= 1:
+        return [work(p) for p in parts]
+    return list(thread_pool(threads).map(work, parts))
