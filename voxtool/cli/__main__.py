@@ -1,0 +1,5 @@
+"""`python -m voxtool.cli`."""
+
+from voxtool.cli import run
+
+run()

@@ -1,0 +1,203 @@
+"""What the commands share: error handling, output, and the option groups."""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from voxtool.errors import VoxtoolError
+
+SAMPLE_DIR = Path(__file__).resolve().parents[1] / "data" / "sample"
+# voxtool.maps.BACKENDS imports the compiled kernels; the CLI keeps its names here so that
+# `--help` stays instant (tests/test_cli.py checks the two agree)
+BACKEND_NAMES = ("hashmap", "octocache", "octree", "tiny")
+
+
+def handle_errors(func):
+    """Turn VoxtoolError into one line on stderr and its exit code; Ctrl-C into exit 130."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            from voxtool.jit import start
+
+            start()  # every command runs compiled kernels
+            return func(*args, **kwargs)
+        except VoxtoolError as err:
+            click.echo(f"voxtool: error: {err}", err=True)
+            sys.exit(err.exit_code)
+        except KeyboardInterrupt:
+            click.echo("voxtool: interrupted; no output written", err=True)
+            sys.exit(130)
+        except MemoryError:
+            click.echo("voxtool: error: out of memory", err=True)
+            sys.exit(1)
+
+    return wrapper
+
+
+def emit(data: dict, as_json: bool, rows: list[tuple[str, str]]) -> None:
+    if as_json:
+        click.echo(json.dumps(data, indent=2, sort_keys=True))
+    else:
+        width = max(len(k) for k, _ in rows)
+        for key, value in rows:
+            click.echo(f"{key:<{width}}  {value}")
+
+
+def summary_rows(stats: dict) -> list[tuple[str, str]]:
+    bbox = stats.get("occupied_bbox")
+    rows = [
+        ("backend", str(stats.get("backend"))),
+        ("resolution", f"{stats.get('resolution')} m"),
+        ("occupied voxels", f"{stats['occupied_voxels']:,}"),
+        ("free voxels", f"{stats['free_voxels']:,}"),
+        ("nodes (leaf/inner)", f"{stats['leaf_nodes']:,} / {stats['inner_nodes']:,}"),
+        ("memory", f"{stats['memory_bytes'] / 2**20:.1f} MiB"),
+        ("occupied bbox", f"{bbox['min']} .. {bbox['max']}" if bbox else "(empty)"),
+    ]
+    if "scans" in stats:
+        rows += [("scans", f"{stats['scans']:,}"), ("points", f"{stats['points']:,} ({stats['points_dropped']:,} dropped)")]
+    if "timings_s" in stats:
+        t = stats["timings_s"]
+        lat = stats["scan_latency_ms"]
+        rows += [
+            ("time total", f"{t['total']:.3f} s (read {t['read']:.3f}, raycast {t['raycast']:.3f}, update {t['update']:.3f})"),
+            ("scan latency", f"p50 {lat['p50']:.1f} ms, p95 {lat['p95']:.1f} ms, max {lat['max']:.1f} ms"),
+        ]
+    return rows
+
+
+def scan_options(func):
+    """Options shared by every command that reads scans: source interpretation and map model."""
+    options = [
+        click.option("--resolution", default=0.2, show_default=True, type=float, help="Voxel edge length in metres."),
+        click.option("--max-range", default=-1.0, show_default=True, type=float,
+                     help="Rays longer than this are cut here and mark no hit (OctoMap maxrange); < 0 = unlimited."),
+        click.option("--min-range", default=0.0, show_default=True, type=float, help="Drop points closer than this to the sensor."),
+        click.option("--merge-rays", is_flag=True,
+                     help="Integrate rays with identical voxel paths once (TinyOctoMap); the map is unchanged under OctoMap's model."),
+        click.option("--poses", type=click.Path(path_type=Path), help="Pose file (TUM, index+TUM or KITTI), one row per scan file."),
+        click.option("--no-viewpoint", is_flag=True,
+                     help="PCD points are already in the world frame; take only the ray origin from VIEWPOINT/--poses."),
+        click.option("--topic", help="MCAP PointCloud2 topic (default: the only one)."),
+        click.option("--world-frame", default=None, help="MCAP /tf frame the map is built in (default: the root of the /tf tree above the cloud's frame)."),
+        click.option("--pose-topic", help="MCAP Odometry/PoseStamped topic giving the sensor pose (instead of /tf)."),
+        click.option("--start", default=0, show_default=True, type=int, help="First scan index to use."),
+        click.option("--stop", default=None, type=int, help="Stop before this scan index."),
+        click.option("--every", default=1, show_default=True, type=int, help="Use every n-th scan."),
+        click.option("--prob-hit", default=0.7, show_default=True, type=float, help="Occupancy probability of a hit (OctoMap)."),
+        click.option("--prob-miss", default=0.4, show_default=True, type=float, help="Occupancy probability of a pass-through."),
+        click.option("--clamp-min", default=0.1192, show_default=True, type=float, help="Lower probability clamp."),
+        click.option("--clamp-max", default=0.971, show_default=True, type=float, help="Upper probability clamp."),
+        click.option("--threshold", default=0.5, show_default=True, type=float, help="Occupancy probability threshold."),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+def scan_setup(kw: dict):
+    """(SourceOptions, MapParams, SensorModel) from the scan_options values (removed from kw)."""
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.sources import SourceOptions
+
+    poses = kw.pop("poses")
+    options = SourceOptions(poses=str(poses) if poses else None, no_viewpoint=kw.pop("no_viewpoint"),
+                            topic=kw.pop("topic"), world_frame=kw.pop("world_frame"), pose_topic=kw.pop("pose_topic"),
+                            start=kw.pop("start"), stop=kw.pop("stop"), every=kw.pop("every"), min_range=kw["min_range"])
+    params = MapParams(resolution=kw.pop("resolution"), max_range=kw.pop("max_range"), min_range=kw.pop("min_range"),
+                       merge_rays=kw.pop("merge_rays"))
+    sensor = SensorModel(kw.pop("prob_hit"), kw.pop("prob_miss"), kw.pop("clamp_min"), kw.pop("clamp_max"),
+                         kw.pop("threshold"))
+    return options, params, sensor
+
+
+threads_option = click.option(
+    "--threads", default=0, show_default=True, type=click.IntRange(min=0),
+    help="Threads for ray casting and map updates; 0: the cores this process may use.")
+
+
+def backend_options(func):
+    """Options that choose and configure the map backend (build, encode)."""
+    options = [
+        click.option("--backend", type=click.Choice(BACKEND_NAMES), default="octree", show_default=True,
+                     help="Map backend (docs/backends.md)."),
+        click.option("--param", "backend_params", multiple=True, metavar="KEY=VALUE",
+                     help="Backend option, e.g. shard_depth=10 (octree); tau=4, buckets=65536, overlap=1, order=morton (octocache); "
+                          "pool_blocks=4096, map_size=40 (tiny); n_lim=50000, d_inf=0.2, inf_range=8, d_in=30, ttl=5, "
+                          "p_init=0.5, discretize=1 (hashmap)."),
+        click.option("--pool-blocks", type=int, help="tiny: memory budget in blocks of 8 nodes (<= 4096: 16-bit nodes)."),
+        click.option("--map-size", type=float, help="tiny: edge of the cubic map extent in metres (sets the depth)."),
+        click.option("--schedule", multiple=True, metavar="SCAN:KEY=VALUE",
+                     help="hashmap: change p_init, n_lim, d_in, d_inf, inf_range or ttl from scan SCAN on (repeatable)."),
+        threads_option,
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+def backend_setup(kw: dict) -> tuple[str, dict]:
+    """(backend name, its options) from the backend_options values (removed from kw)."""
+    extra = parse_params(kw.pop("backend_params"))
+    pool_blocks, map_size, schedule = kw.pop("pool_blocks"), kw.pop("map_size"), kw.pop("schedule")
+    if pool_blocks is not None:
+        extra["pool_blocks"] = pool_blocks
+    if map_size is not None:
+        extra["map_size"] = map_size
+    if schedule:
+        extra["schedule"] = parse_schedule(schedule)
+    extra["threads"] = kw.pop("threads")
+    return kw.pop("backend"), extra
+
+
+def resolve_source(source, sample):
+    from voxtool.errors import ParameterError
+
+    if sample == (source is not None):
+        raise ParameterError("give exactly one of SOURCE or --sample")
+    return SAMPLE_DIR if sample else source
+
+
+def parse_params(items) -> dict:
+    """KEY=VALUE strings to a dict of int / float / str values."""
+    from voxtool.errors import ParameterError
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ParameterError(f"--param '{item}' must read KEY=VALUE")
+        for cast in (int, float):
+            try:
+                out[key] = cast(value)
+                break
+            except ValueError:
+                continue
+        else:
+            out[key] = value
+    return out
+
+
+def parse_schedule(items) -> list:
+    """'SCAN:KEY=VALUE' strings to (scan index, key, value) triples."""
+    from voxtool.errors import ParameterError
+
+    out = []
+    for item in items:
+        at, _, rest = item.partition(":")
+        key, _, value = rest.partition("=")
+        try:
+            out.append((int(at), key, float(value)))
+        except ValueError:
+            raise ParameterError(f"--schedule '{item}' must read SCAN:KEY=VALUE") from None
+    return out
+
+
+def int_list(text: str) -> list:
+    return [int(v) for v in text.split(",")] if text else []

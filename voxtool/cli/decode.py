@@ -1,0 +1,60 @@
+"""`voxtool decode`: replay a packet log into a state map."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from voxtool.cli.common import emit, handle_errors, summary_rows
+
+
+@click.command()
+@click.argument("log", type=click.Path(path_type=Path))
+@click.option("-o", "--output", type=click.Path(path_type=Path), help="Write the replayed state map as a snapshot (.vxm).")
+@click.option("--json", "as_json", is_flag=True, help="Dump packet headers and decoded voxel states as JSON.")
+@click.option("--relay", is_flag=True, help="Integrate 'occupied' frames into a hash map like sensor hits (receiver side).")
+@click.option("--d-inf", default=0.2, show_default=True, type=float, help="--relay: inflation radius of the receiving hash map.")
+@handle_errors
+def decode(log, output, as_json, relay, d_inf):
+    """Replay a packet log into a state map (free / occupied / unknown)."""
+    from voxtool.codec.fusion import fuse, packets_of, save_state_map
+
+    if relay:
+        from voxtool.api import backend_stats
+        from voxtool.codec.log import read_log
+        from voxtool.codec.share import relay as relay_frames
+        from voxtool.config import MapParams, SensorModel
+        from voxtool.io.mapfile import save_map
+        from voxtool.maps.hashmap import HashVoxelMap
+
+        meta, _ = read_log(log)
+        res = next((m.get("resolution") for m in meta.values() if m.get("resolution")), None)
+        if res is None:
+            from voxtool.errors import FormatError
+
+            raise FormatError(f"{log}: packet log metadata gives no resolution")
+        m = HashVoxelMap(MapParams(resolution=res), SensorModel(), d_inf=d_inf)
+        frames = relay_frames(log, m)
+        result = backend_stats(m)
+        result["frames"] = frames
+        if output is not None:
+            save_map(output, m, {"source": str(log), "relayed_frames": frames})
+        emit(result, as_json, summary_rows(result))
+        return
+
+    if as_json:
+        dump = []
+        for p in packets_of(log):
+            head = {k: v for k, v in p.__dict__.items() if k not in ("keys", "states")}
+            head["voxels"] = [[int(a), int(b), int(c), int(s)] for (a, b, c), s in zip(p.keys, p.states)]
+            dump.append(head)
+        click.echo(json.dumps(dump))
+    result = fuse([log])
+    if output is not None:
+        save_state_map(output, result, {"source": str(log), "packets": result.packets})
+    if not as_json:
+        occ = int((result.states == 1).sum())
+        emit({}, False, [("packets", str(result.packets)), ("occupied voxels", f"{occ:,}"),
+                         ("free voxels", f"{result.states.shape[0] - occ:,}")] + ([("written", str(output))] if output else []))
