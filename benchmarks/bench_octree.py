@@ -1,10 +1,14 @@
-"""voxtool's octree backend vs OctoMap C++ (pyoctomap) on the same scans, in one run.
+"""voxtool's octree backend against OctoMap C++ (pyoctomap) on the same scans, in one run.
 
-For each dataset: build with voxtool and with OctoMap 1.10 (each in its own process so peak
-memory is that process's max RSS), print the speed ratio, peak memory of both and the voxel
-agreement (occupied and free voxel sets at the finest resolution). Writes a JSON file too.
+Per dataset: OctoMap 1.10 inserts every scan (its insertion time, as OctoMap users time it);
+then the whole `voxtool build SCANS --resolution R -o map.vxm` command runs, timed from start to
+exit as a user waits for it, at each thread count asked for. Every process's peak resident
+memory is its own (os.wait4). The maps must be identical: voxtool's snapshot and OctoMap's .bt
+are compared voxel by voxel (occupied and free sets at the finest resolution). Prints a table
+and writes JSON.
 
-    python benchmarks/bench_octree.py [--data ../shared/data] [--only kaist03] [--out bench-results/octree.json]
+    python benchmarks/bench_octree.py [--data ../shared/data] [--only kaist03] [--threads 1 2]
+                                      [--repeat 2] [--out bench-results/octree.json]
 """
 
 from __future__ import annotations
@@ -22,76 +26,80 @@ import numpy as np
 DATASETS = [("kaist03", 0.2), ("quick_shack", 0.1), ("norlab", 0.2)]
 
 
-def worker(engine: str, source: str, res: float, out: str) -> None:
+def octomap_worker(source: str, res: float, out: str) -> None:
+    """OctoMap's insertion of every scan (reading not timed); writes its .bt and a JSON."""
+    import pyoctomap
+
     from voxtool.sources import SourceOptions, open_source
 
-    result: dict = {}
-    if engine == "voxtool":
-        from voxtool.config import MapParams, SensorModel
-        from voxtool.io.bt import write_bt
-        from voxtool.maps import make_backend
-        from voxtool.pipeline import build
-
-        m = make_backend("octree", MapParams(resolution=res), SensorModel())
-        report = build(open_source(source, SourceOptions()), m, progress=False)
-        # reading overlaps ray casting on a helper thread, so wall time includes it; it is small
-        result["peak_rss_bytes"] = _vm_hwm()  # before the .bt export, which builds a second tree
-        result.update(insert_s=report.time_total, read_s=report.time_read, jit_s=report.time_jit,
-                      raycast_s=report.time_raycast, update_s=report.time_update, ray_steps=report.ray_steps,
-                      voxel_updates=report.voxel_updates, memory_bytes=m.memory_bytes())
-        write_bt(out, m.leaves(), res, m.sensor.threshold_log)
-    else:
-        import pyoctomap
-
-        tree = pyoctomap.OcTree(res)
-        insert = read = 0.0
-        t_read = time.perf_counter()
-        for scan in open_source(source, SourceOptions()).scans:
-            pts = scan.points.astype(np.float64)
-            origin = scan.origin.astype(np.float64)
-            t0 = time.perf_counter()
-            read += t0 - t_read
-            tree.insertPointCloud(pts, origin)
-            t_read = time.perf_counter()
-            insert += t_read - t0
-        result["peak_rss_bytes"] = _vm_hwm()
-        result.update(insert_s=insert, read_s=read, memory_bytes=int(tree.memoryUsage()))
-        tree.writeBinary(out)
-    Path(out + ".json").write_text(json.dumps(result))
+    tree = pyoctomap.OcTree(res)
+    insert = 0.0
+    for scan in open_source(source, SourceOptions()).scans:
+        pts = scan.points.astype(np.float64)
+        origin = scan.origin.astype(np.float64)
+        t0 = time.perf_counter()
+        tree.insertPointCloud(pts, origin)
+        insert += time.perf_counter() - t0
+    tree.writeBinary(out)
+    Path(out + ".json").write_text(json.dumps({"insert_s": insert, "memory_bytes": int(tree.memoryUsage())}))
 
 
-def _vm_hwm() -> int:
-    """Peak resident memory of this process since exec (VmHWM); ru_maxrss would include the
-    parent's footprint inherited at fork."""
-    status = Path("/proc/self/status").read_text()
-    return int(next(ln.split()[1] for ln in status.splitlines() if ln.startswith("VmHWM"))) * 1024
+# A small launcher between this process and the timed command: a child's peak RSS (ru_maxrss)
+# starts from its parent's at fork, and this process holds hundreds of MB of voxel sets.
+_LAUNCH = """import json, os, sys, time
+t0 = time.perf_counter()
+pid = os.fork()
+if pid == 0:
+    os.execvp(sys.argv[1], sys.argv[1:])
+_, status, usage = os.wait4(pid, 0)
+print(json.dumps([time.perf_counter() - t0, usage.ru_maxrss * 1024, os.waitstatus_to_exitcode(status)]), file=sys.stderr)
+"""
 
 
-def run_worker(engine: str, source: Path, res: float, out: Path) -> dict:
-    cmd = [sys.executable, __file__, "--worker", engine, str(source), str(res), str(out)]
-    if subprocess.run(cmd).returncode != 0:
-        raise SystemExit(f"{engine} worker failed on {source}")
-    return json.loads(Path(str(out) + ".json").read_text())
+def run_timed(cmd: list[str]) -> tuple[float, int, str]:
+    """(wall seconds from start to exit, peak RSS bytes, stdout) of a command."""
+    proc = subprocess.run([sys.executable, "-c", _LAUNCH, *cmd], capture_output=True, text=True)
+    lines = proc.stderr.strip().splitlines()
+    wall, rss, code = json.loads(lines[-1]) if lines else (0.0, 0, proc.returncode)
+    if code != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed: {lines[-2] if len(lines) > 1 else code}")
+    return wall, rss, proc.stdout
 
 
-def voxel_sets(bt: Path):
-    from voxtool.io.bt import read_bt
+def voxel_sets(occupied_codes, occupied_depths, free_codes, free_depths):
     from voxtool.keys import expand_leaves
 
-    t = read_bt(bt)
-    return (expand_leaves(t.codes[t.occupied], t.depths[t.occupied]),
-            expand_leaves(t.codes[~t.occupied], t.depths[~t.occupied]))
+    return expand_leaves(occupied_codes, occupied_depths), expand_leaves(free_codes, free_depths)
+
+
+def bt_voxels(path: Path):
+    from voxtool.io.bt import read_bt
+
+    t = read_bt(path)
+    return voxel_sets(t.codes[t.occupied], t.depths[t.occupied], t.codes[~t.occupied], t.depths[~t.occupied])
+
+
+def vxm_voxels(path: Path):
+    from voxtool.io.mapfile import load_map
+
+    m, _ = load_map(path)
+    lv = m.leaves()
+    occ = lv.values > np.float32(m.sensor.threshold_log)
+    return voxel_sets(lv.codes[occ], lv.depths[occ], lv.codes[~occ], lv.depths[~occ])
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
     ap.add_argument("--only", nargs="*", help="dataset names to run")
+    ap.add_argument("--threads", nargs="*", type=int, default=[0], help="voxtool thread counts (0: all cores)")
+    ap.add_argument("--repeat", type=int, default=2, help="voxtool runs per thread count (the fastest counts)")
+    ap.add_argument("--voxtool", default="voxtool", help="the voxtool command to time")
     ap.add_argument("--out", default="bench-results/octree.json")
-    ap.add_argument("--worker", nargs=4, help=argparse.SUPPRESS)
+    ap.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        worker(args.worker[0], args.worker[1], float(args.worker[2]), args.worker[3])
+        octomap_worker(args.worker[0], float(args.worker[1]), args.worker[2])
         return
     out_dir = Path(args.out).parent
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -103,33 +111,42 @@ def main() -> None:
         if not source.is_dir():
             print(f"skip {name}: {source} absent", file=sys.stderr)
             continue
-        vt = run_worker("voxtool", source, res, out_dir / f"{name}_voxtool.bt")
-        om = run_worker("octomap", source, res, out_dir / f"{name}_octomap.bt")
-        a_occ, a_free = voxel_sets(out_dir / f"{name}_voxtool.bt")
-        b_occ, b_free = voxel_sets(out_dir / f"{name}_octomap.bt")
-        row = {
-            "dataset": name, "resolution": res,
-            "voxtool_insert_s": round(vt["insert_s"], 3), "voxtool_jit_s": round(vt["jit_s"], 3),
-            "voxtool_raycast_s": round(vt["raycast_s"], 3), "voxtool_update_s": round(vt["update_s"], 3),
-            "octomap_insert_s": round(om["insert_s"], 3),
-            "speedup": round(om["insert_s"] / vt["insert_s"], 2),
-            "voxtool_peak_rss_mib": round(vt["peak_rss_bytes"] / 2**20, 1),
-            "octomap_peak_rss_mib": round(om["peak_rss_bytes"] / 2**20, 1),
-            "voxtool_map_mib": round(vt["memory_bytes"] / 2**20, 1),
-            "octomap_map_mib": round(om["memory_bytes"] / 2**20, 1),
-            "ray_steps_per_s": round(vt["ray_steps"] / max(vt["raycast_s"], 1e-9)),
-            "occupied_voxels": int(a_occ.size), "free_voxels": int(a_free.size),
-            "occupied_differ": int(np.setxor1d(a_occ, b_occ).size),
-            "free_differ": int(np.setxor1d(a_free, b_free).size),
-        }
-        rows.append(row)
-    cols = ["dataset", "resolution", "octomap_insert_s", "voxtool_insert_s", "speedup", "voxtool_raycast_s",
-            "voxtool_update_s", "voxtool_jit_s", "octomap_peak_rss_mib", "voxtool_peak_rss_mib",
-            "occupied_voxels", "occupied_differ", "free_voxels", "free_differ"]
+        om_bt = out_dir / f"{name}_octomap.bt"
+        om_wall, om_rss, _ = run_timed([sys.executable, __file__, "--worker", str(source), str(res), str(om_bt)])
+        om = json.loads(Path(str(om_bt) + ".json").read_text())
+        want_occ, want_free = bt_voxels(om_bt)
+        for threads in args.threads:
+            vxm = out_dir / f"{name}_t{threads}.vxm"
+            best = None
+            for _ in range(args.repeat):
+                wall, rss, text = run_timed([args.voxtool, "build", str(source), "--resolution", str(res), "-o", str(vxm),
+                                             "--threads", str(threads), "--json", "--no-progress"])
+                if best is None or wall < best[0]:
+                    best = (wall, rss, json.loads(text))
+            wall, rss, built = best
+            got_occ, got_free = vxm_voxels(vxm)
+            t = built["timings_s"]
+            rows.append({
+                "dataset": name, "resolution": res, "threads": built["threads"],
+                "octomap_insert_s": round(om["insert_s"], 3), "voxtool_command_s": round(wall, 3),
+                "speedup": round(om["insert_s"] / wall, 2),
+                "voxtool_loop_s": round(t["total"], 3), "voxtool_jit_s": round(t["jit"], 3),
+                "ray_steps_per_s": round(built["ray_steps"] / max(t["raycast"], 1e-9)),
+                "updates_per_s": round(built["voxel_updates"] / max(t["update"], 1e-9)),
+                "voxtool_peak_rss_mib": round(rss / 2**20, 1), "octomap_peak_rss_mib": round(om_rss / 2**20, 1),
+                "occupied_voxels": int(got_occ.size), "free_voxels": int(got_free.size),
+                "occupied_differ": int(np.setxor1d(got_occ, want_occ).size),
+                "free_differ": int(np.setxor1d(got_free, want_free).size),
+            })
+            print(json.dumps(rows[-1]), file=sys.stderr)
+    cols = ["dataset", "threads", "octomap_insert_s", "voxtool_command_s", "speedup", "voxtool_loop_s",
+            "ray_steps_per_s", "updates_per_s", "octomap_peak_rss_mib", "voxtool_peak_rss_mib", "occupied_voxels",
+            "occupied_differ", "free_voxels", "free_differ"]
     print(" | ".join(cols))
     for r in rows:
         print(" | ".join(str(r[c]) for c in cols))
-    Path(args.out).write_text(json.dumps({"machine": os.uname().nodename, "cpus": os.cpu_count(), "rows": rows}, indent=2))
+    Path(args.out).write_text(json.dumps({"machine": os.uname().nodename, "cpus": os.cpu_count(), "rows": rows},
+                                         indent=2))
     print(f"wrote {args.out}")
 
 

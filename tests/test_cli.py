@@ -395,3 +395,20 @@ def test_an_integral_float_is_an_integer_option(tmp_path):
     code, text = run("build", "--sample", "--backend", "hashmap", "--param", "n_lim=2e3", "-o", out, "--no-progress")
     assert code == 0, text
     assert read_snapshot(out).header["backend_params"]["n_lim"] == 2000
+
+
+def test_thread_counts_write_the_same_snapshot_and_one_core_means_one_thread(tmp_path):
+    """--threads 1 and --threads 2 give byte-identical snapshots; run under an affinity mask of
+    one core, the default uses that one core (nothing assumes a core count) and agrees too."""
+    if not hasattr(os, "sched_setaffinity"):
+        pytest.skip("no CPU affinity on this OS")
+    outs = {}
+    for label, threads in (("one", "1"), ("two", "2"), ("default", "0")):
+        out = tmp_path / f"{label}.vxm"
+        one_core = (lambda: os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})) if label == "default" else None
+        proc = subprocess.run([sys.executable, "-m", "voxtool.cli", "build", "--sample", "-o", str(out), "--threads",
+                               threads, "--json", "--no-progress"], capture_output=True, text=True, preexec_fn=one_core)
+        assert proc.returncode == 0, proc.stderr
+        outs[label] = (json.loads(proc.stdout)["threads"], out.read_bytes())
+    assert [outs[k][0] for k in ("one", "two", "default")] == [1, 2, 1]
+    assert outs["one"][1] == outs["two"][1] == outs["default"][1]

@@ -55,3 +55,30 @@ def test_stats_match_reference_json(shared_data):
     # the outer voxel corners voxtool reports (checked on all three datasets)
     assert r["occupied_bbox"]["min"] == pytest.approx(np.array(ref["occupied_bbox_min"]) + 0.05)
     assert r["occupied_bbox"]["max"] == pytest.approx(np.array(ref["occupied_bbox_max"]) - 0.05)
+
+
+SOURCES = [("kaist03", "pcd", 0.2), ("kaist03", "kaist03_21scans.mcap", 0.2), ("quick_shack", "pcd", 0.1),
+           ("quick_shack", "quick_shack.mcap", 0.1), ("norlab", "pcd", 0.2)]
+CONFIGS = [(threads, depth) for threads in (1, 2, 3, 8) for depth in (8, 12)]
+
+
+@pytest.mark.sweep
+@pytest.mark.parametrize("dataset,form,res", SOURCES)
+def test_every_thread_count_and_shard_depth_gives_the_reference_map(shared_data, dataset, form, res):
+    """1, 2, 3 and 8 threads, shard depths 8 and 12: 0 voxels differ from OctoMap's reference map,
+    and the snapshots are the same bytes."""
+    from voxtool.io.snapshot import snapshot_bytes
+
+    ref_occ, ref_free = voxel_sets_of_bt(next((shared_data / dataset / "reference").glob("*.bt")))
+    snapshots = set()
+    scans = list(open_source(shared_data / dataset / form, SourceOptions()).scans)
+    for threads, depth in CONFIGS:
+        m = make_backend("octree", MapParams(resolution=res), SensorModel(), threads=threads, shard_depth=depth)
+        for scan in scans:
+            m.integrate(scan)
+        lv = m.leaves()
+        occ = lv.values > np.float32(0.0)
+        assert np.array_equal(expand_leaves(lv.codes[occ], lv.depths[occ]), ref_occ), (threads, depth)
+        assert np.array_equal(expand_leaves(lv.codes[~occ], lv.depths[~occ]), ref_free), (threads, depth)
+        snapshots.add(snapshot_bytes({"backend": "octree"}, m.state_arrays()))
+    assert len(snapshots) == 1
