@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -92,9 +93,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
     ap.add_argument("--only", nargs="*", help="dataset names to run")
-    ap.add_argument("--threads", nargs="*", type=int, default=[0], help="voxtool thread counts (0: all cores)")
+    ap.add_argument("--threads", nargs="*", type=int, default=[0],
+                    help="voxtool thread counts (0: all cores; -1: no --threads option, for older voxtools)")
     ap.add_argument("--repeat", type=int, default=2, help="voxtool runs per thread count (the fastest counts)")
-    ap.add_argument("--voxtool", default="voxtool", help="the voxtool command to time")
+    ap.add_argument("--voxtool", default="voxtool", help="the voxtool command to time (split like a shell line)")
     ap.add_argument("--out", default="bench-results/octree.json")
     ap.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -119,15 +121,16 @@ def main() -> None:
             vxm = out_dir / f"{name}_t{threads}.vxm"
             best = None
             for _ in range(args.repeat):
-                wall, rss, text = run_timed([args.voxtool, "build", str(source), "--resolution", str(res), "-o", str(vxm),
-                                             "--threads", str(threads), "--json", "--no-progress"])
+                wall, rss, text = run_timed([*shlex.split(args.voxtool), "build", str(source), "--resolution", str(res),
+                                             "-o", str(vxm), *(["--threads", str(threads)] if threads >= 0 else []),
+                                             "--json", "--no-progress"])
                 if best is None or wall < best[0]:
                     best = (wall, rss, json.loads(text))
             wall, rss, built = best
             got_occ, got_free = vxm_voxels(vxm)
             t = built["timings_s"]
             rows.append({
-                "dataset": name, "resolution": res, "threads": built["threads"],
+                "dataset": name, "resolution": res, "threads": built.get("threads", threads),
                 "octomap_insert_s": round(om["insert_s"], 3), "voxtool_command_s": round(wall, 3),
                 "speedup": round(om["insert_s"] / wall, 2),
                 "voxtool_loop_s": round(t["total"], 3), "voxtool_jit_s": round(t["jit"], 3),

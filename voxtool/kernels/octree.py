@@ -27,14 +27,18 @@ SET = 1  # items are codes, values[i] the new log-odds (writing back cached voxe
 
 @njit(cache=True, nogil=True)
 def brick_runs(items, shift):
-    """Runs of equal brick (items >> shift) in sorted items: (brick codes, starts), starts[k] the
-    first item of run k and starts[-1] = len(items)."""
+    """Runs of equal brick (items >> shift) in items: (brick codes, starts, sorted), starts[k]
+    the first item of run k and starts[-1] = len(items); `sorted` False when a brick code
+    decreases somewhere (the runs are then not the bricks: sort the items first)."""
     n = items.shape[0]
     count = 0
     last = np.int64(-1)
+    ordered = True
     for i in range(n):
         b = items[i] >> shift
         if b != last:
+            if b < last:
+                ordered = False
             count += 1
             last = b
     codes = np.empty(count, dtype=np.int64)
@@ -49,7 +53,7 @@ def brick_runs(items, shift):
             k += 1
             last = b
     starts[count] = n
-    return codes, starts
+    return codes, starts, ordered
 
 
 @njit(cache=True, nogil=True)

@@ -273,53 +273,40 @@ def _popcount(x):
 
 
 @njit(cache=True, nogil=True)
-def brick_voxels(bricks, touched, order, lo, hi):
-    """How many voxels the bricks order[lo:hi] (sorted by code) hold; bricks of equal code (one
-    brick filled by several threads) count once, their masks OR-ed."""
-    total = 0
-    b = lo
-    while b < hi:
-        code = bricks[order[b]]
-        e = b + 1
-        while e < hi and bricks[order[e]] == code:
-            e += 1
+def brick_voxels(touched, order, firsts, k0, k1, counts):
+    """counts[k] = how many voxels distinct brick k holds, for k in k0..k1: its entries are
+    order[firsts[k]:firsts[k + 1]] (one brick filled by several threads), masks OR-ed."""
+    for k in range(k0, k1):
+        total = 0
         for w in range(8):
-            x = touched[order[b], w]
-            for k in range(b + 1, e):
-                x |= touched[order[k], w]
+            x = np.int64(0)
+            for j in range(firsts[k], firsts[k + 1]):
+                x |= touched[order[j], w]
             total += _popcount(x)
-        b = e
-    return total
+        counts[k] = total
 
 
 @njit(cache=True, nogil=True)
-def expand_bricks(bricks, touched, occ, order, lo, hi, out, at):
-    """The voxels of bricks order[lo:hi] (sorted by code) as Morton-sorted updates
-    code << 1 | occupied, written to out[at:]: a voxel is occupied when any endpoint of the
-    scan fell in it (equal bricks OR-ed). Returns the index after the last one written."""
-    k = at
-    b = lo
-    while b < hi:
-        code = bricks[order[b]]
-        e = b + 1
-        while e < hi and bricks[order[e]] == code:
-            e += 1
-        base = code << BRICK_BITS
+def expand_bricks(codes, touched, occ, order, firsts, k0, k1, starts, out):
+    """The voxels of distinct bricks k0..k1 (brick k: code codes[k], entries
+    order[firsts[k]:firsts[k + 1]]) as Morton-sorted updates code << 1 | occupied, brick k's at
+    out[starts[k]:]: a voxel is occupied when any endpoint of the scan fell in it."""
+    for k in range(k0, k1):
+        n = starts[k]
+        base = codes[k] << BRICK_BITS
         for w in range(8):
-            x = touched[order[b], w]
-            o = occ[order[b], w]
-            for j in range(b + 1, e):
+            x = np.int64(0)
+            o = np.int64(0)
+            for j in range(firsts[k], firsts[k + 1]):
                 x |= touched[order[j], w]
                 o |= occ[order[j], w]
             word = (base | (w << 6)) << 1
             while x != 0:
                 low = x & -x
                 tz = _DEBRUIJN[((low * _DEBRUIJN_MULT) >> 58) & 63]
-                out[k] = word | (tz << 1) | ((o >> tz) & 1)
-                k += 1
+                out[n] = word | (tz << 1) | ((o >> tz) & 1)
+                n += 1
                 x ^= low
-        b = e
-    return k
 
 
 @njit(cache=True, nogil=True)

@@ -32,7 +32,8 @@ _BUFFERS = threading.local()
 
 
 def _trace_part(scan: Scan, params: MapParams, lo: int, hi: int) -> tuple:
-    """Trace rays lo..hi into this thread's brick buffers; returns copies of the used part."""
+    """Trace rays lo..hi into this thread's brick buffers; returns copies of the used part,
+    sorted by brick code."""
     buf = getattr(_BUFFERS, "bricks", None) or BrickBuffers()
     while True:
         n, steps = scan_bricks(scan.points[lo:hi], scan.origin, params.resolution, params.max_range,
@@ -41,7 +42,10 @@ def _trace_part(scan: Scan, params: MapParams, lo: int, hi: int) -> tuple:
             break
         buf = BrickBuffers(2 * buf.bricks.shape[0])
     _BUFFERS.bricks = buf
-    out = (buf.bricks[:n].copy(), buf.touched[:n].copy(), buf.occ[:n].copy(), steps)
+    # sorted here, on the tracing thread: expanding them later then reads the masks in order
+    # (through a permutation, each brick's two rows cost two cache misses: 11 ms a kaist03 scan)
+    order = np.argsort(buf.bricks[:n], kind="stable")
+    out = (buf.bricks[order], buf.touched[order], buf.occ[order], steps)
     buf.reset(n)
     return out
 
@@ -73,31 +77,34 @@ def ray_parts(scan: Scan, threads: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
 
 
-def bricks_to_updates(bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray, threads: int) -> np.ndarray:
-    """Morton-sorted voxel updates (code << 1 | occupied) of a scan's bricks, expanded on
-    `threads` threads, each a run of brick codes into its own part of the output."""
+def bricks_to_updates(bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray,
+                      threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Morton-sorted voxel updates (code << 1 | occupied) of a scan's bricks, with the distinct
+    brick codes and where each brick's updates start (the runs the map update works by);
+    expanded on `threads` threads, each a run of bricks into its own part of the output."""
     order = np.argsort(bricks, kind="stable")
-    n = order.shape[0]
-    parts = max(1, min(threads, n // BRICKS_PER_PART))
-    cuts = [n * k // parts for k in range(parts + 1)]
     sorted_codes = bricks[order]
-    for k in range(1, parts):  # equal codes (a brick several threads filled) stay in one run
-        cuts[k] = int(np.searchsorted(sorted_codes, sorted_codes[cuts[k]], side="left"))
-    runs = [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
-    counts = run_parts(threads, lambda r: brick_voxels(bricks, touched, order, *r), runs)
-    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    firsts = np.flatnonzero(np.diff(sorted_codes, prepend=np.int64(-1)))  # a brick several threads filled: once
+    distinct = sorted_codes[firsts]
+    firsts = np.append(firsts, sorted_codes.shape[0])
+    n = distinct.shape[0]
+    parts = max(1, min(threads, n // BRICKS_PER_PART))
+    runs = [(n * k // parts, n * (k + 1) // parts) for k in range(parts)]
+    counts = np.empty(n, dtype=np.int64)
+    run_parts(threads, lambda r: brick_voxels(touched, order, firsts, r[0], r[1], counts), runs)
+    starts = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(counts, out=starts[1:])
     out = np.empty(int(starts[-1]), dtype=np.int64)
-    run_parts(threads, lambda k: expand_bricks(bricks, touched, occ, order, *runs[k], out, starts[k]),
-              list(range(len(runs))))
-    return out
+    run_parts(threads, lambda r: expand_bricks(distinct, touched, occ, order, firsts, r[0], r[1], starts, out), runs)
+    return out, distinct, starts
 
 
-def scan_updates(scan: Scan, params: MapParams, threads: int = 1) -> tuple[np.ndarray, int, int]:
-    """Morton-sorted (code << 1 | occupied) voxel updates of one scan, its DDA step count, and
-    how many rays were merged into others (0 unless params.merge_rays)."""
+def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1) -> tuple:
+    """(Morton-sorted code << 1 | occupied updates of one scan, its DDA step count, rays merged
+    into others (0 unless params.merge_rays), (distinct brick codes, their update starts))."""
     n = scan.points.shape[0]
     if n == 0:
-        return np.empty(0, dtype=np.int64), 0, 0
+        return np.empty(0, dtype=np.int64), 0, 0, None
     coords_to_keys(scan.origin[None, :], params.resolution, what=f"{scan.source}: sensor origin of scan")
     coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
     merged = 0
@@ -112,27 +119,32 @@ def scan_updates(scan: Scan, params: MapParams, threads: int = 1) -> tuple[np.nd
         touched = np.concatenate([p[1] for p in parts])
         occ = np.concatenate([p[2] for p in parts])
         steps = sum(p[3] for p in parts)
-    return bricks_to_updates(bricks, touched, occ, threads), int(steps), merged
+    packed, distinct, starts = bricks_to_updates(bricks, touched, occ, threads)
+    return packed, int(steps), merged, (distinct, starts)
+
+
+def scan_updates(scan: Scan, params: MapParams, threads: int = 1) -> tuple[np.ndarray, int, int]:
+    """Morton-sorted (code << 1 | occupied) voxel updates of one scan, its DDA step count, and
+    how many rays were merged into others (0 unless params.merge_rays)."""
+    return scan_bricks_updates(scan, params, threads)[:3]
 
 
 def prepare_scan(scan: Scan, params: MapParams, threads: int = 1) -> PreparedScan:
     """A scan's voxel updates, timed, with the ray-merging count when it is enabled."""
     t0 = time.perf_counter()
-    packed, steps, merged = scan_updates(scan, params, threads)
-    return PreparedScan(packed, steps, time.perf_counter() - t0, int(scan.points.shape[0]), merged)
+    packed, steps, merged, runs = scan_bricks_updates(scan, params, threads)
+    return PreparedScan(packed, steps, time.perf_counter() - t0, int(scan.points.shape[0]), merged, brick_runs=runs)
 
 
-def warm_up_kernels() -> None:
-    """Load (or compile, first time on a machine) the kernels on a tiny scan, so the JIT cost is
-    reported apart from the first scan's latency."""
+def warm_up_kernels(merging: bool = False) -> None:
+    """Load (or compile, first time on a machine) the kernels a build runs on a tiny scan, so
+    the JIT cost is reported apart from the first scan's latency (each costs ~5-10 ms)."""
     scan = Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32))
-    params = MapParams(resolution=0.5)
+    params = MapParams(resolution=0.5, merge_rays=merging)
     tree = ShardedOctree()
     tree.apply(scan_updates(scan, params)[0], K.ADD, hit=0.85, miss=-0.4, cmin=-2.0, cmax=3.5)
     balanced_cuts(scan.points, scan.origin, 2)
-    merge_rays(scan, params)
     tree.leaves()
-    tree.query(np.zeros(1, dtype=np.int64))
 
 
 class OctreeMap:
@@ -149,24 +161,25 @@ class OctreeMap:
         self.tree = ShardedOctree(shard_depth, self.threads)
 
     def warm_up(self) -> None:
-        warm_up_kernels()
+        warm_up_kernels(self.params.merge_rays)
 
     def prepare(self, scan: Scan) -> PreparedScan:
         """Ray casting: independent of the map, so it may run ahead on another thread."""
         return prepare_scan(scan, self.params, self.threads)
 
-    def apply_updates(self, items: np.ndarray, mode: int = K.ADD, values: np.ndarray | None = None) -> None:
+    def apply_updates(self, items: np.ndarray, mode: int = K.ADD, values: np.ndarray | None = None,
+                      brick_runs: tuple | None = None) -> None:
         """Fold Morton-sorted updates into the tree: `code << 1 | occupied` (ADD), or codes
-        with their new log-odds (SET)."""
+        with their new log-odds (SET); `brick_runs` as scan_bricks_updates gives them, if known."""
         s = self.sensor
         extra = {} if values is None else {"values": np.ascontiguousarray(values, dtype=np.float32)}
         self.tree.apply(items, mode, hit=s.hit_log, miss=s.miss_log, cmin=s.clamp_min_log, cmax=s.clamp_max_log,
-                        **extra)
+                        runs=brick_runs, **extra)
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         """Tree update; prepared scans must be applied in scan order."""
         t0 = time.perf_counter()
-        self.apply_updates(prepared.packed)
+        self.apply_updates(prepared.packed, brick_runs=prepared.brick_runs)
         return IntegrateTiming(raycast=prepared.seconds, update=time.perf_counter() - t0,
                                voxel_updates=int(prepared.packed.shape[0]), ray_steps=prepared.steps,
                                rays=prepared.rays, merged_rays=prepared.merged_rays)

@@ -207,21 +207,22 @@ class ShardedOctree:
 
     # -- updates ---------------------------------------------------------------------------
     def apply(self, items: np.ndarray, mode: int = K.ADD, values: np.ndarray = _NONE_F32,
-              hit=0.0, miss=0.0, cmin=0.0, cmax=0.0) -> None:
+              hit=0.0, miss=0.0, cmin=0.0, cmax=0.0, runs: tuple | None = None) -> None:
         """Apply updates (kernels.octree.apply_bricks' modes) brick by brick, on `threads`
         threads. Morton order is fastest; other orders are grouped by brick, keeping their order
-        inside each (the order of updates to distinct voxels does not change the map)."""
+        inside each (the order of updates to distinct voxels does not change the map). `runs`:
+        the items' distinct bricks and where each one's items start, when the caller knows them."""
         n = items.shape[0]
         if n == 0:
             return
         self._derived = None
         shift = K.BRICK_BITS + (1 if mode == K.ADD else 0)
-        pre = items >> shift
-        if n > 1 and np.any(pre[1:] < pre[:-1]):
-            by_brick = np.argsort(pre, kind="stable")
+        bricks, starts, ordered = runs + (True,) if runs is not None else K.brick_runs(items, shift)
+        if not ordered:
+            by_brick = np.argsort(items >> shift, kind="stable")
             items = items[by_brick]
             values = values[by_brick] if values.shape[0] else values
-        bricks, starts = K.brick_runs(items, shift)
+            bricks, starts, _ = K.brick_runs(items, shift)
         slots, fresh, init = self._slots_for(bricks)
         consts = np.float32(hit), np.float32(miss), np.float32(cmin), np.float32(cmax)
         runs = balanced_runs(starts, 1 if n < SMALL_BATCH else self.threads)
@@ -238,7 +239,7 @@ class ShardedOctree:
             leaves = Leaves(leaves.codes[~coarse], leaves.depths[~coarse], leaves.values[~coarse])
         if len(leaves) == 0:
             return
-        bricks, starts = K.brick_runs(leaves.codes, K.BRICK_BITS)
+        bricks, starts, _ = K.brick_runs(leaves.codes, K.BRICK_BITS)
         slots, fresh, init = self._slots_for(bricks)
         vals = self.arena.vals
         K.apply_bricks(vals, slots, fresh, init, np.zeros(bricks.shape[0] + 1, np.int64), 0, bricks.shape[0],
