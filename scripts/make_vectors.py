@@ -47,6 +47,8 @@ def packets() -> None:
     states = np.array([0, 1, 2], np.uint8)
     line = np.array([[32768 + i, 32768 + i // 2, 32770] for i in range(7)] + [[32770, 32771, 32771]])
     line_states = np.array([0, 0, 0, 0, 0, 0, 1, 2], np.uint8)
+    long_line = np.array([[32768 + i, 32772 + i // 3, 32770 + i // 2] for i in range(20)])
+    long_states = np.array([0] * 19 + [1], np.uint8)
     cases = {
         "packet_hilbert": dict(scheme="hilbert", keys=keys, states=states),
         "packet_nested": dict(scheme="nested", keys=keys, states=states),
@@ -56,8 +58,17 @@ def packets() -> None:
                                 kind=KIND_KEYFRAME, box=(np.array([100, 200, 300]), np.array([2, 2, 2]))),
         "packet_occupied": dict(scheme="occupied", keys=keys[:0], states=states[:0],
                                 frames=[(7, keys[:2]), (8, keys[2:])]),
-        # cm: a short line of newly free voxels ending in a hit, one voxel gone unknown
+        # cm1 (codec 3, voxtool 0.1's cm): a short line of newly free voxels ending in a hit, one
+        # voxel gone unknown (these bytes are the ones voxtool 0.1 wrote as `packet_cm`)
+        "packet_cm1": dict(scheme="nested", codec="cm1", keys=line, states=line_states),
+        "packet_cm1_keyframe": dict(scheme="nested", codec="cm1", keys=keys[:0],
+                                    states=np.array([0, 1, 2, 0, 1, 1, 0, 2, 2, 2, 0, 0], np.uint8), kind=KIND_KEYFRAME,
+                                    box=(np.array([100, 200, 300]), np.array([3, 2, 2]))),
+        # cm (codec 4): the same line, and a line that crosses 8^3 blocks (some left blank) in a box
+        # of 20 x 12 x 10 cells
         "packet_cm": dict(scheme="nested", codec="cm", keys=line, states=line_states),
+        "packet_cm_blocks": dict(scheme="nested", codec="cm", keys=np.concatenate([line, long_line]),
+                                 states=np.concatenate([line_states, long_states])),
         "packet_cm_keyframe": dict(scheme="nested", codec="cm", keys=keys[:0],
                                    states=np.array([0, 1, 2, 0, 1, 1, 0, 2, 2, 2, 0, 0], np.uint8), kind=KIND_KEYFRAME,
                                    box=(np.array([100, 200, 300]), np.array([3, 2, 2]))),

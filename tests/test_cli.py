@@ -61,7 +61,7 @@ def test_stats_json_matches_build_and_compare_detects_drift(sample_map, tmp_path
     stats["occupied_voxels"] = int(stats["occupied_voxels"] * 1.05)
     base.write_text(json.dumps(stats))
     code, text = run("stats", out, "--compare", base, "--tolerance", "0.01")
-    assert code == 6 and "occupied_voxels" in text and "drifted" in text
+    assert code == 6 and "1 figure(s) regressed" in text and "occupied_voxels 20,088 -> 19,132 (-4.76%)" in text
     assert run("stats", out, "--compare", base, "--tolerance", "0.1")[0] == 0
     # a baseline that cannot guard anything is an error, not a pass
     code, text = run("stats", out, "--compare", base, "--tolerance", "nan")
@@ -85,7 +85,7 @@ def test_stats_compare_guards_packet_log_bandwidth(tmp_path):
     figures["total"]["avg_Bps"] *= 0.9  # the log now takes 11 % more bandwidth than its baseline
     base.write_text(json.dumps(figures))
     code, text = run("stats", log, "--compare", base, "--tolerance", "0.05")
-    assert code == 6 and "total.avg_Bps" in text and "bytes" not in text.split("drifted:")[1]
+    assert code == 6 and "total.avg_Bps" in text and "bytes" not in text.split("regressed beyond")[1]
 
 
 @pytest.mark.parametrize("suffix", [".ply", ".pcd"])
@@ -290,7 +290,7 @@ def test_encode_decode_merge_stats_on_the_sample(tmp_path, sample_map):
     assert merged["simulation"]["equal_to_lossless"] and merged["simulation"]["lost"] > 0
     assert set(merged["robots"]) == {"a", "b"} and all(not r["gaps"] for r in merged["robots"].values())
     code, text = run("decode", a, "--json")
-    assert code == 0 and json.loads(text)[0]["robot"] == "a"
+    assert code == 0 and json.loads(text)["packet_headers"][0]["robot"] == "a"
 
 
 def test_encode_with_cm_decodes_to_the_built_map_in_fewer_bytes(tmp_path, sample_map):

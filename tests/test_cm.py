@@ -1,5 +1,5 @@
-"""Codec cm: byte-identical to a plain-Python coder written from formats/packet.md, round trips,
-and refusal of streams that are truncated, padded, or too short for their box."""
+"""Codecs cm (4) and cm1 (3): byte-identical to plain-Python coders written from formats/packet.md,
+round trips, and refusal of streams that are truncated, padded, or too short for their box."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from voxtool.codec.cm import compress_box, decompress_box
+from voxtool.codec.cm import compress_box, compress_cells, decompress_box, decompress_cells
 from voxtool.codec.packet import KIND_DELTA, UNCHANGED, UNKNOWN, decode_packet, encode_packet
 from voxtool.errors import FormatError
 
@@ -17,9 +17,10 @@ NEAR = [(-1, 0, 0), (1, -1, 0), (0, -1, 0), (-1, -1, 0), (1, 0, -1), (0, 0, -1),
 FAR = [(1, -1, -1), (-1, -1, -1), (1, 1, -1), (-1, 1, -1), (-2, 0, 0), (0, -2, 0), (0, 0, -2)]
 
 
-def reference_encode(codes: np.ndarray, dims, background: int) -> bytes:
-    """The cm stream, cell by cell, as the spec states it. The interval's low end is an exact
-    Python integer, so carries need no handling: the stream is that integer's bytes."""
+def reference_encode(codes: np.ndarray, dims, background: int, blocks: bool = False) -> bytes:
+    """The cm1 stream (codec 3), or with `blocks` the cm stream (codec 4), cell by cell as the
+    spec states it. The interval's low end is an exact Python integer, so carries need no
+    handling: the stream is that integer's bytes."""
     nx, ny, nz = dims
     grid = codes.reshape(nz, ny, nx)
 
@@ -29,7 +30,7 @@ def reference_encode(codes: np.ndarray, dims, background: int) -> bytes:
         c = int(grid[z, y, x])
         return 0 if c == background else 1 if c == 1 else 2
 
-    probs = [1 << 31] * (512 + 128 + 27 + 1)
+    probs = [1 << 31] * (512 + 128 + 27 + 1 + 8)
     counts = [0] * len(probs)
     state = {"low": 0, "range": 0xFFFFFFFF, "shifts": 0}
 
@@ -49,10 +50,22 @@ def reference_encode(codes: np.ndarray, dims, background: int) -> bytes:
             state["low"] <<= 8
             state["shifts"] += 1
 
+    def flag(bx, by, bz):  # a block holds a non-background cell (0 outside the box)
+        if bx < 0 or by < 0 or bz < 0:
+            return 0
+        return int(np.any(grid[8 * bz:8 * bz + 8, 8 * by:8 * by + 8, 8 * bx:8 * bx + 8] != background))
+
     other = 2 if background == UNCHANGED else 3
     for z in range(nz):
+        if blocks and z % 8 == 0 and nx and ny:  # the flags of the slab's blocks, before its planes
+            for by in range((ny + 7) // 8):
+                for bx in range((nx + 7) // 8):
+                    code(bool(flag(bx, by, z // 8)),
+                         668 + flag(bx - 1, by, z // 8) + 2 * flag(bx, by - 1, z // 8) + 4 * flag(bx, by, z // 8 - 1))
         for y in range(ny):
             for x in range(nx):
+                if blocks and not flag(x // 8, y // 8, z // 8):
+                    continue  # a blank block's cells are background and not coded
                 c = int(grid[z, y, x])
                 near = sum(1 << i for i, (dx, dy, dz) in enumerate(NEAR) if cls(x + dx, y + dy, z + dz))
                 if near:
@@ -88,6 +101,42 @@ def test_stream_is_byte_identical_to_the_plain_reference_and_round_trips(box):
     stream = compress_box(codes, (nx, ny, nz), background)
     assert stream == reference_encode(codes, (nx, ny, nz), background)
     assert decompress_box(stream, (nx, ny, nz), background, "t").tolist() == codes.tolist()
+
+
+# boxes up to 20 cells a side, changes in a few places: blank 8^3 blocks next to busy ones
+sparse_boxes = st.tuples(st.integers(1, 20), st.integers(1, 20), st.integers(1, 20), st.floats(0, 1),
+                         st.sampled_from([UNCHANGED, UNKNOWN]), st.integers(0, 2**32 - 1), st.integers(1, 4))
+
+
+@settings(max_examples=120, deadline=None)
+@given(sparse_boxes)
+def test_block_stream_is_byte_identical_to_the_plain_reference_and_round_trips(box):
+    nx, ny, nz, density, background, seed, clumps = box
+    rng = np.random.default_rng(seed)
+    codes = np.full(nx * ny * nz, background, np.uint8).reshape(nz, ny, nx)
+    for _ in range(clumps):  # a few clumps of changes, so that some blocks stay blank
+        x, y, z = rng.integers(0, nx), rng.integers(0, ny), rng.integers(0, nz)
+        part = make_box(4, 4, 4, density, background, seed + 1).reshape(4, 4, 4)
+        codes[z:z + 4, y:y + 4, x:x + 4] = part[: nz - z, : ny - y, : nx - x]
+    codes = codes.reshape(-1)
+    idx = np.flatnonzero(codes != background)
+    stream = compress_cells(idx, codes[idx], (nx, ny, nz), background)
+    assert stream == reference_encode(codes, (nx, ny, nz), background, blocks=True)
+    got_idx, got_vals = decompress_cells(stream, (nx, ny, nz), background, idx.shape[0], "t")
+    assert got_idx.tolist() == idx.tolist() and got_vals.tolist() == codes[idx].tolist()
+
+
+def test_a_huge_box_with_one_line_of_changes_codes_to_a_few_hundred_bytes():
+    """A box of 4096^2 x 64 cells (1.07e9) with one line of changes: its 2.1 M blank blocks cost
+    one decision each (the coder never walks their cells: codec 3 would walk every cell, for
+    ~20 s, and spend ~46 kB on them)."""
+    dims = (4096, 4096, 64)
+    idx = np.arange(100, 200, dtype=np.int64) + 4096 * 4096 * 30
+    vals = np.zeros(100, np.uint8)
+    stream = compress_cells(idx, vals, dims, UNCHANGED)
+    got = decompress_cells(stream, dims, UNCHANGED, 100, "t")
+    assert got[0].tolist() == idx.tolist() and got[1].tolist() == vals.tolist()
+    assert len(stream) < 1000
 
 
 def test_lines_of_free_voxels_code_smaller_than_zstd_and_random_cells_still_round_trip():
@@ -146,7 +195,8 @@ def test_cm_needs_the_nested_order():
             encode_packet("r", 0, 0, scheme, "cm", 0.1, keys, states)
 
 
-@pytest.mark.parametrize("name", ["packet_cm", "packet_cm_keyframe"])
+@pytest.mark.parametrize("name", ["packet_cm", "packet_cm_blocks", "packet_cm_keyframe", "packet_cm1",
+                                  "packet_cm1_keyframe"])
 def test_golden_vectors_payload_is_the_reference_stream(name):
     import json
     from pathlib import Path
@@ -162,7 +212,7 @@ def test_golden_vectors_payload_is_the_reference_stream(name):
     for x, y, z, s in spec["voxels"]:
         bx, by, bz = spec["box_min"]
         codes[(x - bx) + nx * ((y - by) + ny * (z - bz))] = s
-    assert blob[HEADER.size:] == reference_encode(codes, (nx, ny, nz), background)
+    assert blob[HEADER.size:] == reference_encode(codes, (nx, ny, nz), background, blocks=spec["codec"] == "cm")
 
 
 def test_a_box_without_cells_is_five_zero_bytes_whatever_its_other_sides():
@@ -171,5 +221,7 @@ def test_a_box_without_cells_is_five_zero_bytes_whatever_its_other_sides():
     for dims in ((0, 39322, 39321), (39321, 16313, 0), (0, 0, 0)):
         assert compress_box(np.zeros(0, np.uint8), dims, UNCHANGED) == b"\0" * 5
         assert decompress_box(b"\0" * 5, dims, UNKNOWN, "t").shape == (0,)
+        assert compress_cells(np.zeros(0, np.int64), np.zeros(0, np.uint8), dims, UNCHANGED) == b"\0" * 5
+        assert decompress_cells(b"\0" * 5, dims, UNKNOWN, 0, "t")[0].shape == (0,)
     with pytest.raises(FormatError, match="trailing"):
         decompress_box(b"\0" * 6, (0, 39322, 39321), UNCHANGED, "t")

@@ -81,7 +81,8 @@ def test_packet_golden_vector_both_directions(vector):
 
 def test_packet_vectors_exist():
     assert {p.stem for p in PACKETS} == {f"packet_{k}" for k in
-                                         ("hilbert", "nested", "racer", "keyframe", "occupied", "cm", "cm_keyframe")}
+                                         ("hilbert", "nested", "racer", "keyframe", "occupied", "cm", "cm_blocks",
+                                          "cm_keyframe", "cm1", "cm1_keyframe")}
 
 
 def test_version_1_packets_still_decode():

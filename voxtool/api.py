@@ -14,12 +14,14 @@ from voxtool.sources import SourceOptions, open_source
 
 
 def backend_stats(backend: MapBackend) -> dict:
-    from voxtool.stats import leaf_stats
+    """A map's figures (docs/parameters.md): voxel counts and bounding box, the nodes of the
+    two trees OctoMap has for it, and the bytes of the backend's own storage."""
+    from voxtool.stats import tree_stats
 
-    leaf_nodes, inner_nodes = backend.node_counts()
-    out = {"backend": backend.name, "resolution": backend.params.resolution,
-           "leaf_nodes": leaf_nodes, "inner_nodes": inner_nodes, "memory_bytes": backend.memory_bytes()}
-    out.update(leaf_stats(backend.leaves(), backend.params.resolution, backend.sensor.threshold_log))
+    out = {"backend": backend.name, "resolution": backend.params.resolution}
+    out.update(tree_stats(backend.leaves(), backend.params.resolution, backend.sensor.threshold_log,
+                          getattr(backend, "canonical_leaves", False)))
+    out.update(pool_bytes=backend.memory_bytes(), pool_bytes_used=backend.used_bytes())
     out.update(backend.extra_stats())
     return out
 
@@ -87,22 +89,27 @@ def load_leaves(path: str | os.PathLike) -> tuple[Leaves, float, float, dict]:
     return backend.leaves(), backend.params.resolution, backend.sensor.threshold_log, snap.header
 
 
-def map_stats(path: str | os.PathLike) -> dict:
+def map_stats(path: str | os.PathLike, progress: bool | None = False) -> dict:
     """Statistics of a snapshot (with the build counts recorded in it) or of a .bt file."""
-    from voxtool.stats import leaf_stats
+    from voxtool.progress import bar
+    from voxtool.stats import tree_stats
 
     path = Path(path)
-    if path.suffix.lower() == ".bt":
-        leaves, res, thr, meta = load_leaves(path)
-        n_leaves = len(leaves)
-        out = {"backend": meta["backend"], "resolution": res, "leaf_nodes": n_leaves,
-               "inner_nodes": meta["declared_nodes"] - n_leaves, "memory_bytes": 0}
-        out.update(leaf_stats(leaves, res, thr))
-        return out
-    from voxtool.io.mapfile import load_map
+    with bar(2, "stats", progress, "step") as steps:
+        if path.suffix.lower() == ".bt":
+            leaves, res, thr, meta = load_leaves(path)
+            steps.update(1)
+            out = {"backend": meta["backend"], "resolution": res}
+            out.update(tree_stats(leaves, res, thr, False))
+            # a .bt holds only the max-likelihood tree: no log-odds tree, no in-memory pool
+            out.update(octree_leaf_nodes=None, octree_inner_nodes=None, pool_bytes=None, pool_bytes_used=None,
+                       file_nodes=meta["declared_nodes"])
+            return out
+        from voxtool.io.mapfile import load_map
 
-    backend, snap = load_map(path)
-    out = backend_stats(backend)
+        backend, snap = load_map(path)
+        steps.update(1)
+        out = backend_stats(backend)
     info = snap.header.get("info", {})
     for key in ("scans", "points", "points_dropped"):
         if key in info:
@@ -112,14 +119,23 @@ def map_stats(path: str | os.PathLike) -> dict:
     return out
 
 
-def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False) -> int:
+def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False,
+               progress: bool | None = False) -> dict:
+    """Write a map (.vxm or .bt) as .bt, .ply, .pcd or .png; returns what was written."""
+    from voxtool.atomic import check_writable
     from voxtool.io.export import EXPORTERS
+    from voxtool.progress import bar
 
     output = Path(output)
     writer = EXPORTERS.get(output.suffix.lower())
     if writer is None:
         raise ParameterError(f"{output}: unknown export type '{output.suffix}' (use {', '.join(sorted(EXPORTERS))})")
-    leaves, res, thr, _ = load_leaves(path)
-    return writer(output, leaves, res, thr, include_free)
+    check_writable(output)
+    with bar(2, f"export {output.suffix}", progress, "step") as steps:
+        leaves, res, thr, _ = load_leaves(path)
+        steps.update(1)
+        written = writer(output, leaves, res, thr, include_free)
+        steps.update(1)
+    return written
 
 

@@ -41,3 +41,21 @@ class RegressionError(VoxtoolError):
     """`stats --compare` found figures that drifted beyond tolerance."""
 
     exit_code = 6
+
+
+def mcap_problem(err: Exception) -> str:
+    """What is wrong with an MCAP file, from the mcap library's exception, in plain words."""
+    import struct
+
+    from mcap.exceptions import EndOfFile, InvalidMagic, RecordLengthLimitExceeded
+
+    if isinstance(err, RecordLengthLimitExceeded):
+        return "a record declares more bytes than any record may hold: the file is truncated or corrupt"
+    if isinstance(err, EndOfFile | EOFError | struct.error):
+        return "it ends inside a record: the file is truncated"
+    if isinstance(err, InvalidMagic):
+        return "it does not start (or end) with the MCAP magic: not an MCAP file, or a truncated one"
+    text = str(err)
+    if "crc" in text.lower():
+        return f"a CRC does not match: the file is corrupt ({text})"
+    return f"it is corrupt ({type(err).__name__}: {text})"

@@ -12,9 +12,30 @@ from voxtool.errors import FormatError, ParameterError, RegressionError
 from voxtool.keys import keys_to_coords
 from voxtool.maps.base import Leaves
 
-# figures `stats --compare` checks; timings are machine-dependent and never compared
-COMPARED = ("occupied_voxels", "free_voxels", "leaf_nodes", "inner_nodes", "scans", "points", "points_dropped")
-LOG_COMPARED = ("packets", "bytes", "total.avg_Bps", "total.max_Bps")  # packet logs (`stats LOG.mcap`)
+# The figures `stats --compare` checks, with the change that counts as a regression: "up" (more
+# is worse), "down" (less is worse) or "any" (a change either way needs a look). Timings are
+# machine-dependent and never compared. docs/parameters.md lists the reason for each.
+COMPARED = {
+    "occupied_voxels": "any", "free_voxels": "any",  # the map itself: fewer can be as wrong as more
+    "leaf_nodes": "up", "inner_nodes": "up",  # a bigger tree costs more memory, disk and bandwidth
+    "octree_leaf_nodes": "up", "octree_inner_nodes": "up",
+    "scans": "any", "points": "any",  # a different input: the rest is no longer comparable
+    "points_dropped": "up",
+}
+LOG_COMPARED = {"packets": "up", "bytes": "up", "total.avg_Bps": "up", "total.max_Bps": "up"}  # packet logs
+
+
+def tree_stats(leaves: Leaves, resolution: float, threshold_log: float, canonical: bool) -> dict:
+    """leaf_stats, and the nodes of OctoMap's two trees of these leaves: `leaf_nodes` /
+    `inner_nodes` of the max-likelihood tree a .bt file holds, `octree_leaf_nodes` /
+    `octree_inner_nodes` of the log-odds tree OctoMap keeps in memory (`canonical`: the leaves are
+    that tree's already, else they are pruned first)."""
+    from voxtool.maps.tree import collapse, max_likelihood, node_counts
+
+    out = leaf_stats(leaves, resolution, threshold_log)
+    out["octree_leaf_nodes"], out["octree_inner_nodes"] = node_counts(leaves if canonical else collapse(leaves))
+    out["leaf_nodes"], out["inner_nodes"] = node_counts(max_likelihood(leaves, threshold_log))
+    return out
 
 
 def leaf_stats(leaves: Leaves, resolution: float, threshold_log: float) -> dict:
@@ -39,9 +60,20 @@ def _figure(d: dict, dotted: str):
     return d
 
 
-def compare(current: dict, baseline_path: str | Path, tolerance: float, figures: tuple = COMPARED) -> list[str]:
-    """Figures (dotted paths into the JSON) that drifted beyond a relative tolerance; raises
-    RegressionError listing them."""
+def number(value) -> str:
+    """One way to print a figure: thousands separated, no exponent, no trailing zeros."""
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    if isinstance(value, int):
+        return f"{value:,}"
+    return f"{value:,.3f}".rstrip("0").rstrip(".")
+
+
+def compare(current: dict, baseline_path: str | Path, tolerance: float, figures: dict = COMPARED) -> dict:
+    """Compare figures (dotted paths into the JSON) with a baseline: per figure the baseline,
+    the new value, the relative change, the change allowed and a verdict (ok, improvement,
+    regression: a change beyond the tolerance in the direction `figures` names). Never raises
+    for a regression: the caller reports it (`stats` exits 6)."""
     path = Path(baseline_path)
     try:
         baseline = json.loads(path.read_text())
@@ -51,20 +83,37 @@ def compare(current: dict, baseline_path: str | Path, tolerance: float, figures:
         raise FormatError(f"{path}: baseline JSON is not an object")
     if not (0 <= tolerance < math.inf):  # NaN would pass every figure
         raise ParameterError(f"--tolerance {tolerance} must be a finite number >= 0")
-    drifted, compared = [], 0
-    for name in figures:
+    rows = {}
+    for name, worse in figures.items():
         value, now = _figure(baseline, name), _figure(current, name)
         if value is None or now is None:
             continue
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise FormatError(f"{path}: baseline figure '{name}' is {value!r}, not a number")
-        old, new = float(value), float(now)
-        compared += 1
-        rel = abs(new - old) / max(abs(old), 1.0)
-        if rel > tolerance or math.isnan(rel):
-            drifted.append(f"{name}: {old:g} -> {new:g} ({rel:.2%} > {tolerance:.2%})")
-    if not compared:
+        change = (float(now) - float(value)) / max(abs(float(value)), 1.0)
+        beyond = abs(change) > tolerance or math.isnan(change)
+        bad = beyond and (worse == "any" or (worse == "up") == (change > 0) or math.isnan(change))
+        rows[name] = {"base": value, "new": now, "change": round(change, 6), "allowed": tolerance,
+                      "regression_if": {"up": "more", "down": "less", "any": "changed"}[worse],
+                      "verdict": "regression" if bad else "improvement" if beyond else "ok"}
+    if not rows:
         raise FormatError(f"{path}: baseline holds none of the compared figures ({', '.join(figures)})")
-    if drifted:
-        raise RegressionError(f"{path}: {len(drifted)} figure(s) drifted: " + "; ".join(drifted))
-    return drifted
+    return {"baseline": str(path), "tolerance": tolerance, "figures": rows,
+            "regressions": [name for name, r in rows.items() if r["verdict"] == "regression"]}
+
+
+def comparison_rows(report: dict) -> list[tuple[str, str]]:
+    """The comparison as `stats` prints it: one row per figure."""
+    out = []
+    for name, r in report["figures"].items():
+        out.append((f"compare {name}", f"{number(r['base'])} -> {number(r['new'])} ({r['change']:+.2%}, allowed "
+                                       f"{r['allowed']:.2%}, worse if {r['regression_if']}): {r['verdict']}"))
+    return out
+
+
+def regression_error(report: dict) -> RegressionError:
+    """The one-line error for a comparison with regressions."""
+    parts = [f"{name} {number(report['figures'][name]['base'])} -> {number(report['figures'][name]['new'])} "
+             f"({report['figures'][name]['change']:+.2%})" for name in report["regressions"]]
+    return RegressionError(f"{report['baseline']}: {len(parts)} figure(s) regressed beyond the tolerance of "
+                           f"{report['tolerance']:.2%}: " + "; ".join(parts))

@@ -280,8 +280,10 @@ CASES = [
     ("poses NaN", pose_case("0 nan 0 0 0 0 0 1\n" * 2), 3, "pose row holds NaN or inf"),
     ("poses empty", pose_case("# nothing\n"), 3, "pose file holds no poses"),
     # --- MCAP ----------------------------------------------------------------------------
-    ("mcap truncated", mcap_case(mutate=lambda b: b[: len(b) // 2]), 3, "not a readable MCAP file"),
-    ("mcap not mcap", mcap_case(mutate=lambda b: b"hello world" * 10), 3, "not a readable MCAP file"),
+    ("mcap truncated", mcap_case(mutate=lambda b: b[: len(b) // 2]), 3,
+     "cannot be read as MCAP: a record declares more bytes than any record may hold: the file is truncated"),
+    ("mcap not mcap", mcap_case(mutate=lambda b: b"hello world" * 10), 3,
+     "cannot be read as MCAP: it does not start (or end) with the MCAP magic"),
     ("mcap without the topic", mcap_case(extra=("--topic", "/lidar")), 3, "topic '/lidar' is not a PointCloud2 topic (PointCloud2 topics: /points)"),
     ("mcap without transforms", mcap_case(skip_tf=True), 3, "no /tf transform reaches the cloud frame 'lidar' and no --pose-topic was given"),
     ("mcap point_step beyond row_step", mcap_case(overrides={"point_step": 16}), 3, "point_step 16 x width 30 exceeds row_step 360"),
@@ -314,8 +316,8 @@ CASES = [
     ("snapshot bad resolution", snapshot_case(snapshot_with(header_edit=lambda h: h["map_params"].update(resolution=-1))), 5, "resolution=-1 must lie in"),
     ("snapshot truncated, export", snapshot_case(lambda b: b[:100], command="export"), 5, "exceeds the file (100 bytes) or the 1 MiB limit"),
     # --- packet logs ---------------------------------------------------------------------
-    ("packet log truncated", packet_log_case(mutate=lambda b: b[: len(b) // 2]), 5, "not a readable voxtool packet log"),
-    ("packet log junk", packet_log_case(mutate=lambda b: b"\x89MCAP0\r\n" + b"\0" * 40), 5, "not a readable voxtool packet log"),
+    ("packet log truncated", packet_log_case(mutate=lambda b: b[: len(b) // 2]), 5, "cannot be read as a packet log: "),
+    ("packet log junk", packet_log_case(mutate=lambda b: b"\x89MCAP0\r\n" + b"\0" * 40), 5, "cannot be read as a packet log: "),
     ("packet with bad CRC", packet_log_case(blob_edit=lambda b: b[:-1] + bytes([b[-1] ^ 1])), 5, "packet of 'r': CRC mismatch"),
     ("packet declares 4 GB box", packet_log_case(blob_edit=huge_box), 5, "exceeds the key range or 2147483648 cells"),
     ("packet future version", packet_log_case(blob_edit=lambda b: b[:4] + bytes([7]) + b[5:]), 5, "packet version 7 is not supported"),
@@ -327,7 +329,13 @@ CASES = [
      "codec cm with scheme hilbert"),
     ("packet cm box too large for its stream", packet_log_case(
         blob_edit=lambda b: resealed(b, f15=4000, f16=4000, f17=100, f19=(4000 * 4000 * 100 + 3) // 4),
-        scheme="nested", codec="cm"), 5, "cannot hold a box of 1600000000 cells"),
+        scheme="nested", codec="cm"), 5, "a cm stream of 6 bytes cannot hold a box of (4000, 4000, 100) cells"),
+    ("packet cm1 box too large for its stream", packet_log_case(
+        blob_edit=lambda b: resealed(b, f15=4000, f16=4000, f17=100, f19=(4000 * 4000 * 100 + 3) // 4),
+        scheme="nested", codec="cm1"), 5, "cannot hold a box of 1600000000 cells"),
+    ("packet cm with more cells than declared", packet_log_case(blob_edit=lambda b: resealed(b, f18=1),
+                                                                scheme="nested", codec="cm"), 5,
+     "cm stream holds more than the 1 cells the packet declares"),
 ]
 
 
@@ -352,7 +360,7 @@ def mcap_without_schema(tmp):
 
 
 CASES += [
-    ("mcap chunk corrupted", mcap_case(mutate=flip_in_first_chunk), 3, "corrupt MCAP while reading poses"),
+    ("mcap chunk corrupted", mcap_case(mutate=flip_in_first_chunk), 3, "cannot read its poses: a CRC does not match"),
     ("mcap channel without schema", mcap_without_schema, 3, "found 0 PointCloud2 topics (none); choose one with --topic"),
 ]
 

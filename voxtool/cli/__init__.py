@@ -30,7 +30,28 @@ from voxtool.cli.stats import stats  # noqa: E402
 __all__ = ["BACKEND_NAMES", "SAMPLE_DIR", "main", "run"]
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class VoxtoolGroup(click.Group):
+    """click's group with voxtool's error lines: a usage mistake (a value that is not a number,
+    an unknown option) is one line on stderr and exit 2, as every other voxtool error, instead
+    of click's usage block."""
+
+    def main(self, args=None, prog_name=None, **extra):
+        try:
+            code = super().main(args, prog_name or "voxtool", standalone_mode=False, **extra)
+        except click.UsageError as err:
+            hint = f" (see '{err.ctx.command_path} --help')" if err.ctx is not None else ""
+            click.echo(f"voxtool: error: {err.format_message().rstrip('.')}{hint}", err=True)
+            sys.exit(err.exit_code)
+        except click.ClickException as err:
+            click.echo(f"voxtool: error: {err.format_message()}", err=True)
+            sys.exit(err.exit_code)
+        except click.Abort:
+            click.echo("voxtool: interrupted; no output written", err=True)
+            sys.exit(130)
+        sys.exit(code if isinstance(code, int) else 0)
+
+
+@click.group(cls=VoxtoolGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="voxtool")
 def main() -> None:
     """Turn LiDAR scan streams into 3D occupancy voxel maps, measure and share them.

@@ -15,6 +15,7 @@ from voxtool.cli.common import (
     scan_options,
     scan_setup,
     summary_rows,
+    warn_dropped,
 )
 
 
@@ -38,4 +39,5 @@ def build(source, sample, output, share, ring, as_json, progress, **kw):
     backend, extra = backend_setup(kw)
     result = build_map(resolve_source(source, sample), options, params, sensor, backend, output, progress, extra,
                        share, ring)
-    emit(result, as_json, summary_rows(result) + ([("written", str(output))] if output else []))
+    warn_dropped(source or "sample", result)
+    emit(result, as_json, summary_rows(result), written=output)

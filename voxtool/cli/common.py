@@ -40,7 +40,13 @@ def handle_errors(func):
     return wrapper
 
 
-def emit(data: dict, as_json: bool, rows: list[tuple[str, str]]) -> None:
+def emit(data: dict, as_json: bool, rows: list[tuple[str, str]], written=None) -> None:
+    """A command's result: JSON on stdout, or aligned rows; `written` (a path or paths) is
+    confirmed the same way by every command ("written" in both)."""
+    if written is not None:
+        paths = [str(p) for p in (written if isinstance(written, list | tuple) else [written])]
+        data = {**data, "written": paths if isinstance(written, list | tuple) else paths[0]}
+        rows = rows + [("written", p) for p in paths]
     if as_json:
         click.echo(json.dumps(data, indent=2, sort_keys=True))
     else:
@@ -49,24 +55,45 @@ def emit(data: dict, as_json: bool, rows: list[tuple[str, str]]) -> None:
             click.echo(f"{key:<{width}}  {value}")
 
 
+def warn_dropped(where, figures: dict) -> None:
+    """One warning line on stderr for every kind of update a map dropped: never silent."""
+    of = f" of {figures['voxel_updates']:,}" if figures.get("voxel_updates") else ""
+    if figures.get("dropped_updates"):
+        click.echo(f"voxtool: warning: {where}: the tiny map's pool of {figures['pool_blocks']:,} blocks was full: "
+                   f"{figures['dropped_updates']:,}{of} voxel updates were dropped; give --pool-blocks a larger budget, "
+                   "or leave it out to size the pool from the map", err=True)
+    if figures.get("outside_map_updates"):
+        click.echo(f"voxtool: warning: {where}: {figures['outside_map_updates']:,}{of} voxel updates fell outside the "
+                   f"tiny map's {figures['map_size_m']:g} m extent and were dropped; give --map-size a larger extent",
+                   err=True)
+
+
 def summary_rows(stats: dict) -> list[tuple[str, str]]:
+    """A map's statistics as `build`, `stats` and `decode` print them (docs/parameters.md)."""
     bbox = stats.get("occupied_bbox")
     rows = [
         ("backend", str(stats.get("backend"))),
         ("resolution", f"{stats.get('resolution')} m"),
         ("occupied voxels", f"{stats['occupied_voxels']:,}"),
         ("free voxels", f"{stats['free_voxels']:,}"),
-        ("nodes (leaf/inner)", f"{stats['leaf_nodes']:,} / {stats['inner_nodes']:,}"),
-        ("memory", f"{stats['memory_bytes'] / 2**20:.1f} MiB"),
-        ("occupied bbox", f"{bbox['min']} .. {bbox['max']}" if bbox else "(empty)"),
+        ("nodes (leaf/inner)", f"{stats['leaf_nodes']:,} / {stats['inner_nodes']:,} in the .bt (max-likelihood) tree"),
     ]
+    if stats.get("octree_leaf_nodes") is not None:
+        rows.append(("", f"{stats['octree_leaf_nodes']:,} / {stats['octree_inner_nodes']:,} in the log-odds octree"))
+    if stats.get("pool_bytes") is not None:
+        rows.append(("memory", f"{stats['pool_bytes_used'] / 2**20:.1f} MiB in use, {stats['pool_bytes'] / 2**20:.1f} MiB "
+                               f"allocated ({stats.get('backend')})"))
+    rows.append(("occupied bbox", f"{bbox['min']} .. {bbox['max']}" if bbox else "(empty)"))
     if "scans" in stats:
         rows += [("scans", f"{stats['scans']:,}"), ("points", f"{stats['points']:,} ({stats['points_dropped']:,} dropped)")]
     if "timings_s" in stats:
         t = stats["timings_s"]
         lat = stats["scan_latency_ms"]
+        threads = f" on {stats['threads']} thread{'s' if stats.get('threads', 1) > 1 else ''}" if "threads" in stats else ""
         rows += [
-            ("time total", f"{t['total']:.3f} s (read {t['read']:.3f}, raycast {t['raycast']:.3f}, update {t['update']:.3f})"),
+            ("time", f"{t['total']:.3f} s for the scans{threads} ({t['jit']:.3f} s before: loading the kernels)"),
+            ("time per phase", f"read {t['read']:.3f} s, ray casting {t['raycast']:.3f} s, map update {t['update']:.3f} s "
+                               "(summed over scans; the phases overlap, so they add up to more)"),
             ("scan latency", f"p50 {lat['p50']:.1f} ms, p95 {lat['p95']:.1f} ms, max {lat['max']:.1f} ms"),
         ]
     return rows
@@ -131,7 +158,9 @@ def backend_options(func):
                      help="Backend option, e.g. shard_depth=10 (octree); tau=4, buckets=65536, overlap=1, order=morton (octocache); "
                           "pool_blocks=4096, map_size=40 (tiny); n_lim=50000, d_inf=0.2, inf_range=8, d_in=30, ttl=5, "
                           "p_init=0.5, discretize=1 (hashmap)."),
-        click.option("--pool-blocks", type=int, help="tiny: memory budget in blocks of 8 nodes (<= 4096: 16-bit nodes)."),
+        click.option("--pool-blocks", type=int,
+                     help="tiny: a fixed memory budget in blocks of 8 nodes (<= 4096: 16-bit nodes, the paper's 64 KiB); "
+                          "updates it cannot hold are dropped (with a warning). Default: the pool grows as the map needs."),
         click.option("--map-size", type=float, help="tiny: edge of the cubic map extent in metres (sets the depth)."),
         click.option("--schedule", multiple=True, metavar="SCAN:KEY=VALUE",
                      help="hashmap: change p_init, n_lim, d_in, d_inf, inf_range or ttl from scan SCAN on (repeatable)."),

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
@@ -13,11 +12,13 @@ from voxtool.cli.common import emit, handle_errors, summary_rows
 @click.command()
 @click.argument("log", type=click.Path(path_type=Path))
 @click.option("-o", "--output", type=click.Path(path_type=Path), help="Write the replayed state map as a snapshot (.vxm).")
-@click.option("--json", "as_json", is_flag=True, help="Dump packet headers and decoded voxel states as JSON.")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON (with every packet's header).")
+@click.option("--voxels", is_flag=True, help="--json: also list every packet's voxels as [x, y, z key, state].")
 @click.option("--relay", is_flag=True, help="Integrate 'occupied' frames into a hash map like sensor hits (receiver side).")
 @click.option("--d-inf", default=0.2, show_default=True, type=float, help="--relay: inflation radius of the receiving hash map.")
+@click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def decode(log, output, as_json, relay, d_inf):
+def decode(log, output, as_json, voxels, relay, d_inf, progress):
     """Replay a packet log into a state map (free / occupied / unknown)."""
     from voxtool.codec.fusion import fuse, packets_of, save_state_map
 
@@ -41,20 +42,21 @@ def decode(log, output, as_json, relay, d_inf):
         result["frames"] = frames
         if output is not None:
             save_map(output, m, {"source": str(log), "relayed_frames": frames})
-        emit(result, as_json, summary_rows(result))
+        emit(result, as_json, summary_rows(result), written=output)
         return
 
-    if as_json:
-        dump = []
-        for p in packets_of(log):
-            head = {k: v for k, v in p.__dict__.items() if k not in ("keys", "states")}
-            head["voxels"] = [[int(a), int(b), int(c), int(s)] for (a, b, c), s in zip(p.keys, p.states)]
-            dump.append(head)
-        click.echo(json.dumps(dump))
-    result = fuse([log])
+    result = fuse([log], progress=progress)
     if output is not None:
         save_state_map(output, result, {"source": str(log), "packets": result.packets})
-    if not as_json:
-        occ = int((result.states == 1).sum())
-        emit({}, False, [("packets", str(result.packets)), ("occupied voxels", f"{occ:,}"),
-                         ("free voxels", f"{result.states.shape[0] - occ:,}")] + ([("written", str(output))] if output else []))
+    occ = int((result.states == 1).sum())
+    data = {"log": str(log), "packets": result.packets, "occupied_voxels": occ,
+            "free_voxels": int(result.states.shape[0] - occ), "resolution": result.resolution, "robots": result.robots}
+    if as_json:
+        data["packet_headers"] = []
+        for p in packets_of(log):
+            head = {k: v for k, v in p.__dict__.items() if k not in ("keys", "states")}
+            if voxels:
+                head["voxels"] = [[int(a), int(b), int(c), int(s)] for (a, b, c), s in zip(p.keys, p.states)]
+            data["packet_headers"].append(head)
+    emit(data, as_json, [("packets", f"{result.packets:,}"), ("occupied voxels", f"{occ:,}"),
+                         ("free voxels", f"{data['free_voxels']:,}")], written=output)

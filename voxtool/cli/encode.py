@@ -14,6 +14,7 @@ from voxtool.cli.common import (
     resolve_source,
     scan_options,
     scan_setup,
+    warn_dropped,
 )
 
 
@@ -36,7 +37,7 @@ from voxtool.cli.common import (
               help="Also emit a full-state keyframe every n packets (0: never).")
 @click.option("--rate", "rate_hz", default=10.0, show_default=True, type=float, help="Scan rate (Hz) assumed when the source has no stamps.")
 @click.option("--json", "as_json", is_flag=True, help="Print the encoding report as JSON.")
-@click.option("--progress/--no-progress", default=None)
+@click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
 def encode(source, sample, output, robot, scheme, codec, max_changes, max_interval, ring, keyframe_every,
            rate_hz, as_json, progress, **kw):
@@ -62,4 +63,5 @@ def encode(source, sample, output, robot, scheme, codec, max_changes, max_interv
     info = {"source": str(src), "backend": backend, "backend_params": {k: v for k, v in extra.items() if k != "schedule"},
             "map_params": params.to_dict(), "sensor_model": sensor.to_dict()}
     result = encode_stream(stream, mapper, output, opts, info, progress)
-    emit(result, as_json, [(k, str(v)) for k, v in result.items()])
+    warn_dropped(src, mapper.extra_stats())
+    emit(result, as_json, [(k, str(v)) for k, v in result.items()], written=output)

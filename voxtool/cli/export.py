@@ -13,12 +13,17 @@ from voxtool.cli.common import emit, handle_errors
 @click.argument("map_file", type=click.Path(path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
               help="Output file; its suffix picks the format: .bt, .ply, .pcd or .png.")
-@click.option("--free", "include_free", is_flag=True, help="Also write free voxels (.ply/.pcd, coloured).")
+@click.option("--free", "include_free", is_flag=True,
+              help="Also write free voxels (.ply/.pcd, coloured; a .bt and a picture always hold them).")
 @click.option("--json", "as_json", is_flag=True, help="Print what was written as JSON.")
+@click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def export(map_file, output, include_free, as_json):
-    """Export a map snapshot: .bt (OctoMap binary), .ply/.pcd (voxel centres), .png (top view)."""
+def export(map_file, output, include_free, as_json, progress):
+    """Export a map snapshot (.vxm) or an OctoMap .bt: .bt (OctoMap binary, the max-likelihood
+    tree), .ply/.pcd (voxel centres), .png (top view)."""
     from voxtool.api import export_map
 
-    count = export_map(map_file, output, include_free)
-    emit({"output": str(output), "items": count}, as_json, [("written", str(output)), ("items", f"{count:,}")])
+    written = export_map(map_file, output, include_free, progress)
+    rows = [(key.replace("_", " "), f"{value:,}" if isinstance(value, int) else str(value))
+            for key, value in written.items() if value is not None]
+    emit(written, as_json, rows, written=output)

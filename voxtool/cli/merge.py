@@ -15,14 +15,15 @@ from voxtool.cli.common import emit, handle_errors
 @click.option("--extrinsic", multiple=True, help="ROBOT=tx,ty,tz,qw,qx,qy,qz: pose of that robot's map in the fused frame.")
 @click.option("--simulate-loss", type=float, default=None, help="Run the request/response resend simulation with this loss rate.")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Seed of the loss simulation.")
-@click.option("--json", "as_json", is_flag=True)
+@click.option("--json", "as_json", is_flag=True, help="Print the fused map's figures, per robot, as JSON.")
+@click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def merge(logs, output, extrinsic, simulate_loss, seed, as_json):
+def merge(logs, output, extrinsic, simulate_loss, seed, as_json, progress):
     """Fuse the packet logs of several robots: every voxel takes its latest-stamped state."""
     from voxtool.codec.fusion import Extrinsic, fuse, save_state_map
 
     ext = dict(Extrinsic.parse(e) for e in extrinsic)
-    result = fuse(list(logs), ext)
+    result = fuse(list(logs), ext, progress=progress)
     occ = int((result.states == 1).sum())
     out = {"packets": result.packets, "occupied_voxels": occ, "free_voxels": int(result.states.shape[0] - occ),
            "robots": result.robots}
@@ -41,4 +42,4 @@ def merge(logs, output, extrinsic, simulate_loss, seed, as_json):
         sim = out["simulation"]
         rows.append(("simulation", f"loss {simulate_loss}: sent {sim['sent']}, lost {sim['lost']}, resent {sim['resent']}, "
                                    f"keyframes {sim['keyframes']}, equal to lossless: {sim['equal_to_lossless']}"))
-    emit(out, as_json, rows)
+    emit(out, as_json, rows, written=output)

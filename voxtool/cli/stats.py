@@ -13,30 +13,39 @@ from voxtool.cli.common import emit, handle_errors, summary_rows
 @click.argument("map_file", type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print as JSON.")
 @click.option("--compare", "baseline", type=click.Path(path_type=Path),
-              help="Baseline JSON (from `stats --json`); exit 6 when a figure drifts beyond --tolerance "
-                   "(maps: voxel, node, scan and point counts; packet logs: packets, bytes, bandwidth).")
-@click.option("--tolerance", default=0.0, show_default=True, type=float, help="Relative tolerance for --compare.")
+              help="Baseline JSON (from `stats --json`): print every compared figure and exit 6 when one changes "
+                   "beyond --tolerance in its bad direction (maps: voxels either way, more nodes or dropped points; "
+                   "packet logs: more packets, bytes or bandwidth). docs/parameters.md lists them.")
+@click.option("--tolerance", default=0.0, show_default=True, type=float,
+              help="Relative change allowed by --compare (0.01: 1 %).")
+@click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def stats(map_file, as_json, baseline, tolerance):
+def stats(map_file, as_json, baseline, tolerance, progress):
     """Statistics of a map snapshot (.vxm), an OctoMap .bt file, or a packet log (.mcap)."""
     from voxtool.api import map_stats
-    from voxtool.stats import LOG_COMPARED, compare
+    from voxtool.stats import COMPARED, LOG_COMPARED, compare, comparison_rows, number, regression_error
 
     if map_file.suffix.lower() == ".mcap":
         from voxtool.codec.logstats import log_stats
 
-        result = log_stats(map_file)
-        rows = [("packets", str(result["packets"])), ("bytes", f"{result['bytes']:,}"),
-                ("total bandwidth", f"avg {result['total']['avg_Bps']:,.0f} B/s, max {result['total']['max_Bps']:,.0f} B/s")]
+        result = log_stats(map_file, progress)
+        figures = LOG_COMPARED
+        rows = [("packets", number(result["packets"])), ("bytes", number(result["bytes"])),
+                ("total bandwidth", f"avg {number(result['total']['avg_Bps'])} B/s, max {number(result['total']['max_Bps'])} B/s")]
         for robot, r in result["robots"].items():
-            rows.append((f"robot {robot}", f"{r['scheme']}/{r['codec']}: avg {r['avg_Bps']:,.0f} B/s, max {r['max_Bps']:,.0f} B/s, "
-                                           f"{r['bytes_per_changed_voxel']} B/changed voxel, x{r['compression_ratio']} compression, "
-                                           f"{r['ratio_to_raw_sensor']} of raw sensor B/s"))
-        if baseline is not None:
-            compare(result, baseline, tolerance, LOG_COMPARED)
-        emit(result, as_json, rows)
-        return
-    result = map_stats(map_file)
+            rows.append((f"robot {robot}", f"{r['scheme']}/{r['codec']}: avg {number(r['avg_Bps'])} B/s, max "
+                                           f"{number(r['max_Bps'])} B/s, {number(r['bytes_per_changed_voxel'])} B/changed voxel, "
+                                           f"x{number(r['compression_ratio'])} compression, "
+                                           f"{number(r['ratio_to_raw_sensor'] or 0)} of raw sensor B/s"))
+    else:
+        result = map_stats(map_file, progress)
+        figures = COMPARED
+        rows = summary_rows(result)
+    report = None
     if baseline is not None:
-        compare(result, baseline, tolerance)
-    emit(result, as_json, summary_rows(result))
+        report = compare(result, baseline, tolerance, figures)
+        result["comparison"] = report
+        rows += comparison_rows(report)
+    emit(result, as_json, rows)
+    if report is not None and report["regressions"]:
+        raise regression_error(report)

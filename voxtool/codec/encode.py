@@ -35,7 +35,7 @@ class EncodeOptions:
             raise ParameterError("--max-changes, --max-interval, --ring and --rate must be positive")
         if self.keyframe_every < 0:
             raise ParameterError(f"--keyframe-every {self.keyframe_every} must be >= 0 (0: no keyframes)")
-        if self.codec == "cm" and self.scheme != "nested":
+        if self.codec in ("cm", "cm1") and self.scheme != "nested":
             raise ParameterError(f"--codec cm codes boxes in x-y-z order: use it with --scheme nested, not {self.scheme}")
         if not self.robot or len(self.robot.encode()) > 16:
             raise ParameterError(f"robot id '{self.robot}' must be 1..16 bytes")
@@ -48,10 +48,13 @@ def voxel_states(values: np.ndarray, threshold_log: float) -> np.ndarray:
     return out
 
 
+MAX_PLANE = 1 << 24  # cells in one z-plane of a box (a cm coder keeps three planes of classes)
+
+
 def split_changes(codes: np.ndarray, max_count: int, density: int = 256) -> list[tuple[int, int]]:
     """Split Morton-sorted changed voxels into runs of at most `max_count` whose bounding box
-    holds at most max(density * count, 2^18) cells (density 0: no volume limit), cutting at
-    octree node boundaries.
+    holds at most max(density * count, 2^18) cells (density 0: no volume limit, but at most
+    2^30 cells and MAX_PLANE cells a plane), cutting at octree node boundaries.
 
     Our choice (formats/packet.md): one box over a long-range LiDAR scan's changes spans the
     whole sensor range and is mostly 'unchanged' cells; octree-aligned runs keep boxes compact."""
@@ -63,11 +66,15 @@ def split_changes(codes: np.ndarray, max_count: int, density: int = 256) -> list
         if n == 0:
             continue
         if n <= max_count:
-            if density <= 0 or n == 1:
+            if n == 1:
                 out.append((a, b))
                 continue
             lo, hi = key_bounds(morton_decode(codes[a:b]))
-            if int(np.prod(hi - lo + 1)) <= max(density * n, 1 << 18):
+            dims = hi - lo + 1
+            cells = int(np.prod(dims))
+            fits = cells <= 1 << 30 and int(dims[0] * dims[1]) <= MAX_PLANE if density <= 0 else \
+                cells <= max(density * n, 1 << 18)
+            if fits:
                 out.append((a, b))
                 continue
         # cut where the highest differing Morton bit of the run's ends flips
@@ -138,7 +145,7 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
     last_emit = None
     period = int(1e9 / opts.rate_hz)
     backend.warm_up()
-    if opts.codec == "cm":
+    if opts.codec in ("cm", "cm1"):
         from voxtool.codec.cm import warm_up
 
         warm_up()
@@ -149,7 +156,7 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
             nonlocal seq, pend_codes, pend_states
             if opts.scheme in ("hilbert", "nested"):
                 # cm spends next to nothing on empty cells (docs/packets.md): boxes split by count only
-                runs = split_changes(pend_codes, opts.max_changes, density=0 if opts.codec == "cm" else 256)
+                runs = split_changes(pend_codes, opts.max_changes, density=0 if opts.codec in ("cm", "cm1") else 256)
             elif opts.scheme == "racer":
                 runs = [(a, min(a + opts.max_changes, pend_codes.shape[0]))
                         for a in range(0, max(pend_codes.shape[0], 1), opts.max_changes)]

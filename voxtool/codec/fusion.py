@@ -67,40 +67,65 @@ class FusionResult:
 
 
 def _log_packets(path: Path):
+    """(packet count, stream of ((stamp, robot, seq), path, packet)) of a log, checked in order."""
     _, messages = read_log(path)
-    last: dict[str, int] = {}
-    for robot, _, blob in messages:
-        p = decode_packet(blob, f"{path}: packet of '{robot}'")
-        if p.stamp_ns < last.get(p.robot, -1):
-            raise FormatError(f"{path}: packet {p.seq} of robot '{p.robot}' (stamp {p.stamp_ns}) is older than the one before it")
-        last[p.robot] = p.stamp_ns
-        yield (p.stamp_ns, p.robot, p.seq), p
+
+    def stream():
+        last: dict[str, int] = {}
+        for robot, _, blob in messages:
+            p = decode_packet(blob, f"{path}: packet of '{robot}'")
+            if p.stamp_ns < last.get(p.robot, -1):
+                raise FormatError(f"{path}: packet {p.seq} of robot '{p.robot}' (stamp {p.stamp_ns}) is older than the "
+                                  "one before it")
+            last[p.robot] = p.stamp_ns
+            yield (p.stamp_ns, p.robot, p.seq), path, p
+
+    return messages.count, stream()
 
 
-def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, packets=None) -> FusionResult:
-    """Fuse logs (or given packets) by latest stamp; report sequence gaps per robot."""
+def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, packets=None,
+         progress: bool | None = False) -> FusionResult:
+    """Fuse logs (or given packets) by latest stamp; report sequence gaps per robot. `progress`:
+    a bar over the packets on stderr (None: when stderr is a terminal)."""
+    from voxtool.progress import track
+
     extrinsics = extrinsics or {}
+    total = None
     if packets is None:
-        streams = [_log_packets(Path(p)) for p in paths]
-        ordered = heapq.merge(*streams, key=lambda item: item[0])
-        packets = (p for _, p in ordered)
+        paths = [Path(p) for p in paths]
+        twice = sorted({str(p) for p in paths if paths.count(p) > 1})
+        if twice:
+            raise ParameterError(f"{twice[0]}: given twice (a log fused with itself would count its packets twice)")
+        logs = [_log_packets(p) for p in paths]
+        total = sum(count for count, _ in logs) if all(count is not None for count, _ in logs) else None
+        ordered = heapq.merge(*(stream for _, stream in logs), key=lambda item: item[0])
+        packets = ((path, p) for _, path, p in ordered)
+    else:
+        packets = ((None, p) for p in packets)
+    packets = track(packets, total, "fuse", progress, "packet")
     codes_parts, rank_parts, state_parts = [], [], []
     robots: dict[str, dict] = {}
-    resolution = None
+    resolution = first_from = None
     rank = 0
-    seen: dict[str, set] = {}
-    for p in packets:
+    seen: dict[str, dict] = {}  # robot -> (seq, kind) -> the log it came from
+    for path, p in packets:
+        where = f"{path}: " if path is not None else ""
         if resolution is None:
-            resolution = p.resolution
+            resolution, first_from = p.resolution, path
         elif p.resolution != resolution:
-            raise FormatError(f"packet {p.seq} of '{p.robot}' has resolution {p.resolution}, others {resolution}")
+            raise FormatError(f"{where}packet {p.seq} of robot '{p.robot}' has resolution {p.resolution} m, but "
+                              f"{first_from or 'the first packet'} has {resolution} m: fuse maps of one resolution")
         info = robots.setdefault(p.robot, {"packets": 0, "first_stamp_ns": p.stamp_ns, "seqs": set()})
-        seen_ids = seen.setdefault(p.robot, set())
+        seen_ids = seen.setdefault(p.robot, {})
         info["packets"] += 1
         info["last_stamp_ns"] = p.stamp_ns
         if (p.seq, p.kind) in seen_ids:
-            continue  # duplicate delivery
-        seen_ids.add((p.seq, p.kind))
+            other = seen_ids[(p.seq, p.kind)]
+            if other != path:
+                raise ParameterError(f"{path}: packet {p.seq} of robot '{p.robot}' is also in {other}: the same robot's "
+                                     "log given twice (a split log has no sequence numbers in common)")
+            continue  # duplicate delivery within one log
+        seen_ids[(p.seq, p.kind)] = path
         if p.kind == 0:
             info["seqs"].add(p.seq)
         keys = p.keys
@@ -149,4 +174,4 @@ def save_state_map(path, result: FusionResult, info: dict) -> None:
 
 
 def packets_of(path: Path) -> list[Packet]:
-    return [p for _, p in _log_packets(path)]
+    return [p for _, _, p in _log_packets(path)[1]]

@@ -16,7 +16,7 @@ from zlib import error as zlib_error
 
 from voxtool.atomic import atomic_writer
 from voxtool.codec.packet import HEADER
-from voxtool.errors import FormatError
+from voxtool.errors import FormatError, mcap_problem
 
 SCHEMA_NAME = "voxtool/MapPacket"
 SCHEMA_ENCODING = "voxtool-packet-v1"
@@ -69,10 +69,21 @@ class PacketLogWriter:
             self._ctx.__exit__(exc_type, exc, tb)
 
 
-def read_log(path: str | Path, handle=None) -> tuple[dict[str, dict], Iterator[tuple[str, int, bytes]]]:
-    """(metadata per robot, iterator of (robot, log time, packet bytes) in file order).
-    `handle` (a seekable binary stream) is read instead of opening `path`, which then only
-    names the input in messages."""
+class Messages:
+    """The packets of a log, (robot, log time, packet bytes) in file order, read as iterated;
+    `count`: how many the log's summary declares."""
+
+    def __init__(self, iterator: Iterator[tuple[str, int, bytes]], count: int | None) -> None:
+        self._iterator = iterator
+        self.count = count
+
+    def __iter__(self) -> Iterator[tuple[str, int, bytes]]:
+        return self._iterator
+
+
+def read_log(path: str | Path, handle=None) -> tuple[dict[str, dict], Messages]:
+    """(metadata per robot, the packets as Messages). `handle` (a seekable binary stream) is
+    read instead of opening `path`, which then only names the input in messages."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
@@ -92,7 +103,7 @@ def read_log(path: str | Path, handle=None) -> tuple[dict[str, dict], Iterator[t
     except (McapError, ValueError, EOFError, AssertionError, json.JSONDecodeError, KeyError, struct.error,
             UnicodeDecodeError, OverflowError, MemoryError) as err:
         handle.close()
-        raise FormatError(f"{path}: not a readable voxtool packet log ({type(err).__name__}: {err})") from err
+        raise FormatError(f"{path}: cannot be read as a packet log: {mcap_problem(err)}") from err
     if summary is None or not any(s.name == SCHEMA_NAME for s in summary.schemas.values()):
         handle.close()
         raise FormatError(f"{path}: MCAP holds no '{SCHEMA_NAME}' schema (not a voxtool packet log)")
@@ -107,8 +118,9 @@ def read_log(path: str | Path, handle=None) -> tuple[dict[str, dict], Iterator[t
                 yield channel.metadata.get("robot", channel.topic.rsplit("/", 1)[-1]), message.log_time, message.data
         except (McapError, ValueError, EOFError, AssertionError, KeyError, struct.error, UnicodeDecodeError,
                 OverflowError, zlib_error) as err:
-            raise FormatError(f"{path}: corrupt packet log ({type(err).__name__}: {err})") from err
+            raise FormatError(f"{path}: cannot be read as a packet log: {mcap_problem(err)}") from err
         finally:
             handle.close()
 
-    return meta, messages()
+    stats = summary.statistics
+    return meta, Messages(messages(), int(stats.message_count) if stats is not None else None)

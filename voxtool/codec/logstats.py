@@ -10,14 +10,16 @@ from voxtool.codec.log import read_log
 from voxtool.codec.packet import HEADER, decode_packet
 
 
-def log_stats(path: str | Path) -> dict:
+def log_stats(path: str | Path, progress: bool | None = False) -> dict:
     """Packets, bytes, average and 1-second-window maximum bandwidth per robot and in total,
     compression ratio, bytes per changed voxel, and the ratio to the raw sensor bandwidth."""
+    from voxtool.progress import track
+
     path = Path(path)
     meta, messages = read_log(path)
     rows: dict[str, dict] = {}
     stamps, sizes = [], []
-    for robot, _, blob in messages:
+    for robot, _, blob in track(messages, messages.count, "stats", progress, "packet"):
         p = decode_packet(blob, f"{path}: packet of '{robot}'")
         r = rows.setdefault(p.robot, {"packets": 0, "keyframes": 0, "bytes": 0, "raw_payload_bytes": 0,
                                       "stored_payload_bytes": 0, "changed_voxels": 0, "stamps": [], "sizes": [],

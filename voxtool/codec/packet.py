@@ -29,7 +29,10 @@ MAGIC = b"VXPK"
 VERSION = 2  # 2: `occupied` frames as varint Morton deltas; version-1 packets still decode
 READABLE_VERSIONS = (1, 2)
 SCHEMES = ("hilbert", "nested", "racer", "occupied")
-CODECS = ("none", "zstd", "zlib", "cm")  # cm: voxtool.codec.cm, box schemes in nested order
+# cm and cm1: voxtool.codec.cm, the nested scheme only (cm1: voxtool 0.1's cm, which codes every cell)
+CODECS = ("none", "zstd", "zlib", "cm1", "cm")
+CM_CODECS = ("cm1", "cm")
+MAX_CM_PLANE = 1 << 26  # cells in one plane of a cm box: a coder keeps three planes of classes
 KIND_DELTA, KIND_KEYFRAME = 0, 1
 FREE, OCCUPIED, UNKNOWN, UNCHANGED = 0, 1, 2, 3
 HEADER = struct.Struct("<4sBBBB16sIqd3d3H3HIIII")
@@ -146,8 +149,8 @@ def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, 
     encoded by occupied_frame() (once: a frame rides in k packets)."""
     if scheme not in SCHEMES or codec not in CODECS:
         raise ValueError(f"unknown scheme/codec {scheme}/{codec}")
-    if codec == "cm" and scheme != "nested":
-        raise ValueError(f"codec cm codes a box in x-fastest order: scheme {scheme} cannot use it (use nested)")
+    if codec in CM_CODECS and scheme != "nested":
+        raise ValueError(f"codec {codec} codes a box in x-fastest order: scheme {scheme} cannot use it (use nested)")
     keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
     states = np.asarray(states, dtype=np.uint8)
     if scheme == "occupied":
@@ -172,6 +175,23 @@ def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, 
             raw = a.tobytes() + pack_2bit(states)
             count = keys.shape[0]
         else:
+            if codec == "cm":
+                from voxtool.codec.cm import compress_cells
+
+                # cm codes the changed cells with their neighbourhood, never the whole box
+                if kind == KIND_KEYFRAME:
+                    if states.shape[0] != cells:
+                        raise ValueError("keyframe states must cover every cell of the box")
+                    idx = np.flatnonzero(states != UNKNOWN)
+                    vals, count, background = states[idx], cells, UNKNOWN
+                else:
+                    rel = keys - lo
+                    idx = rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])
+                    order = np.argsort(idx, kind="stable")
+                    idx, vals, count, background = idx[order], states[order], int(keys.shape[0]), UNCHANGED
+                stored = compress_cells(idx, vals, dims, background)
+                return _assemble(robot, seq, stamp_ns, scheme, codec, kind, resolution, map_origin, lo, dims, count,
+                                 (cells + 3) // 4, stored)
             if kind == KIND_KEYFRAME:
                 grid = states
                 if grid.shape[0] != cells:
@@ -181,7 +201,7 @@ def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, 
                 rel = keys - lo
                 grid[rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])] = states
             count = int(keys.shape[0]) if kind == KIND_DELTA else cells
-            if codec == "cm":
+            if codec == "cm1":
                 from voxtool.codec.cm import compress_box
 
                 # cm codes the cells themselves; the header still declares the 2-bit payload's size
@@ -257,9 +277,30 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
         if raw_size != count * width + (count + 3) // 4 or count > cells:
             raise FormatError(f"{where}: {count} RACER entries do not fit {raw_size} bytes")
     frames: list[tuple[int, np.ndarray]] = []
+    grid = None
+    if codec in CM_CODECS and scheme != "nested":
+        raise FormatError(f"{where}: codec {codec} with scheme {scheme} (cm codes nested boxes only)")
     if codec == "cm":
-        if scheme != "nested":
-            raise FormatError(f"{where}: codec cm with scheme {scheme} (cm codes nested boxes only)")
+        blocks = int(np.prod((dims_a + 7) // 8))
+        limit = CM_CELLS_PER_BYTE * (stored_size + 8)
+        # every block and every cell costs the range coder a minimum fraction of a bit: refuse what
+        # a stream this short cannot hold before allocating or decoding anything
+        if blocks > limit or count > limit or int(dims_a[0] * dims_a[1]) > MAX_CM_PLANE:
+            raise FormatError(f"{where}: a cm stream of {stored_size} bytes cannot hold a box of {dims} cells "
+                              f"with {count} {'changes' if kind == KIND_DELTA else 'cells'} (or a plane of more than "
+                              f"{MAX_CM_PLANE} cells)")
+        from voxtool.codec.cm import decompress_cells
+
+        background = UNCHANGED if kind == KIND_DELTA else UNKNOWN
+        idx, vals = decompress_cells(blob[HEADER.size:], dims_a, background, count, where)
+        if kind == KIND_KEYFRAME:
+            grid = np.full(cells, UNKNOWN, dtype=np.uint8)
+            grid[idx] = vals
+        else:
+            if np.any(vals == UNCHANGED):
+                raise FormatError(f"{where}: cm stream codes an 'unchanged' cell")
+            idx_changed, states = idx, vals
+    elif codec == "cm1":
         if cells > CM_CELLS_PER_BYTE * (stored_size + 8):
             # every cell costs the range coder a minimum fraction of a bit: refuse a box that a
             # stream this short cannot hold before allocating or decoding anything
@@ -279,12 +320,14 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
             else:
                 grid = codes
     if scheme in ("hilbert", "nested"):
-        if kind == KIND_KEYFRAME and np.any(grid == UNCHANGED):
-            raise FormatError(f"{where}: keyframe holds 'unchanged' cells")
-        idx = np.flatnonzero(grid != UNCHANGED)
-        if kind == KIND_DELTA and idx.shape[0] != count:
-            raise FormatError(f"{where}: {idx.shape[0]} changed cells, header declares {count}")
-        states = grid[idx]
+        if grid is not None:
+            if kind == KIND_KEYFRAME and np.any(grid == UNCHANGED):
+                raise FormatError(f"{where}: keyframe holds 'unchanged' cells")
+            idx_changed = np.flatnonzero(grid != UNCHANGED)
+            states = grid[idx_changed]
+        if kind == KIND_DELTA and idx_changed.shape[0] != count:
+            raise FormatError(f"{where}: {idx_changed.shape[0]} changed cells, header declares {count}")
+        idx = idx_changed
         keys = np.stack([idx % dims_a[0], (idx // dims_a[0]) % dims_a[1], idx // (dims_a[0] * dims_a[1])], axis=1) + lo_a
     elif scheme == "racer":
         width = address_width(dims_a)

@@ -83,11 +83,15 @@ def parse_bt_bytes(blob: bytes, path: str | Path = "bt") -> BtTree:
 
 def bt_bytes(leaves: Leaves, resolution: float, threshold_log: float) -> bytes:
     """Encode leaves as a .bt file (max-likelihood, fully pruned)."""
-    from voxtool.kernels.bt import serialize_bt
-    from voxtool.maps.shards import collapse
+    return _bt(leaves, resolution, threshold_log)[0]
 
-    ml = np.where(leaves.values > np.float32(threshold_log), np.float32(1.0), np.float32(-1.0)).astype(np.float32)
-    tree = collapse(Leaves(leaves.codes, leaves.depths, ml), 16)  # equal max-likelihood siblings prune
+
+def _bt(leaves: Leaves, resolution: float, threshold_log: float) -> tuple[bytes, int, int]:
+    """(.bt bytes, leaf nodes, inner nodes) of leaves: max-likelihood, fully pruned."""
+    from voxtool.kernels.bt import serialize_bt
+    from voxtool.maps.tree import max_likelihood
+
+    tree = max_likelihood(leaves, threshold_log)
     occupied = tree.values > 0
     need = serialize_bt(tree.codes, tree.depths, occupied, np.zeros(0, np.uint8))
     data = np.zeros(need, dtype=np.uint8)
@@ -96,11 +100,14 @@ def bt_bytes(leaves: Leaves, resolution: float, threshold_log: float) -> bytes:
     header = (
         f"{HEADER.decode()}\n# (written by voxtool)\n#\nid OcTree\nsize {size}\nres {resolution:.10g}\ndata\n"
     ).encode()
-    return header + data.tobytes()
+    return header + data.tobytes(), len(tree), need // 2
 
 
-def write_bt(path: str | Path, leaves: Leaves, resolution: float, threshold_log: float) -> None:
+def write_bt(path: str | Path, leaves: Leaves, resolution: float, threshold_log: float) -> tuple[int, int]:
+    """Write a .bt file; returns its tree's (leaf nodes, inner nodes)."""
+    blob, leaf_nodes, inner_nodes = _bt(leaves, resolution, threshold_log)
     with atomic_writer(path) as handle:
-        handle.write(bt_bytes(leaves, resolution, threshold_log))
+        handle.write(blob)
+    return leaf_nodes, inner_nodes
 
 

@@ -40,7 +40,12 @@ def _cloud(leaves: Leaves, resolution: float, threshold_log: float, include_free
     return np.concatenate([pts, free]), colors
 
 
-def write_ply(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> int:
+def _cloud_figures(fmt: str, pts: np.ndarray, colors, occupied: int) -> dict:
+    return {"format": fmt, "points": int(len(pts)), "occupied_voxels": occupied,
+            "free_voxels": int(len(pts) - occupied) if colors is not None else None}
+
+
+def write_ply(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> dict:
     pts, colors = _cloud(leaves, resolution, threshold_log, include_free)
     props = "property float x\nproperty float y\nproperty float z\n"
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
@@ -55,10 +60,10 @@ def write_ply(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
     with atomic_writer(path) as handle:
         handle.write(header.encode())
         handle.write(rec.tobytes())
-    return len(pts)
+    return _cloud_figures("ply", pts, colors, occupied_count(leaves, threshold_log))
 
 
-def write_pcd(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> int:
+def write_pcd(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> dict:
     pts, colors = _cloud(leaves, resolution, threshold_log, include_free)
     if colors is None:
         fields, sizes, types = "x y z", "4 4 4", "F F F"
@@ -75,7 +80,11 @@ def write_pcd(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
     with atomic_writer(path) as handle:
         handle.write(header.encode())
         handle.write(rec.tobytes())
-    return len(pts)
+    return _cloud_figures("pcd", pts, colors, occupied_count(leaves, threshold_log))
+
+
+def occupied_count(leaves: Leaves, threshold_log: float) -> int:
+    return int(leaf_span(leaves.depths[leaves.values > np.float32(threshold_log)]).sum())
 
 
 def topdown_image(leaves: Leaves, resolution: float, threshold_log: float, max_side: int = 4096) -> np.ndarray:
@@ -134,21 +143,27 @@ def png_bytes(img: np.ndarray) -> bytes:
             + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
 
 
-def write_png(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> int:
+def write_png(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> dict:
+    if include_free:
+        raise ParameterError(f"{path}: a picture always shows free space (light green); --free is for .ply/.pcd")
     img = topdown_image(leaves, resolution, threshold_log)
     with atomic_writer(path) as handle:
         handle.write(png_bytes(img))
-    return int(img.shape[0] * img.shape[1])
+    return {"format": "png", "width": int(img.shape[1]), "height": int(img.shape[0])}
 
 
-def write_bt_export(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> int:
+def write_bt_export(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> dict:
+    """OctoMap's .bt: the max-likelihood tree (free and occupied voxels always)."""
     from voxtool.io.bt import write_bt
 
-    write_bt(path, leaves, resolution, threshold_log)
-    return len(leaves)
+    if include_free:
+        raise ParameterError(f"{path}: a .bt always holds free and occupied voxels; --free is for .ply/.pcd")
+    leaf_nodes, inner_nodes = write_bt(path, leaves, resolution, threshold_log)
+    return {"format": "bt", "leaf_nodes": leaf_nodes, "inner_nodes": inner_nodes}
 
 
-EXPORTERS: dict[str, Callable[[Path, Leaves, float, float, bool], int]] = {
+# each writes the file and returns what it wrote (format, counts)
+EXPORTERS: dict[str, Callable[[Path, Leaves, float, float, bool], dict]] = {
     ".bt": write_bt_export,
     ".ply": write_ply,
     ".pcd": write_pcd,

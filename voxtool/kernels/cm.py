@@ -94,6 +94,47 @@ def _code_bit(bit, p, rng, low, cache, pending, data, pos, decode):
     return bit, rng, low, cache, pending, pos
 
 
+@njit(cache=True, inline="always")
+def _cell_context(window, r0):
+    """Decision 1's context from the sliding window of row bits (see code_box) and r0."""
+    if window == 0 and r0 == 0:
+        return OFF_FAR  # nothing around: most cells of a sparse box
+    left = window >> 16
+    mid = (window >> 8) & 0xFF
+    right = window & 0xFF
+    near = ((r0 & 1) | ((right & 1) << 1) | ((mid & 1) << 2) | ((left & 1) << 3)
+            | ((right & 2) << 3) | ((mid & 2) << 4) | ((left & 2) << 5)
+            | ((mid & 4) << 5) | ((mid & 8) << 5))
+    if near != 0:
+        return near
+    return OFF_FAR + (((right >> 2) & 1) | ((left >> 1) & 2) | ((right >> 1) & 4)
+                      | (left & 8) | ((r0 >> 1) << 4) | ((mid & 16) << 1) | ((mid & 32) << 1))
+
+
+@njit(cache=True, inline="always")
+def _code_cell(code, background, other, ctx, grid, below, yy, x, probs, counts, rng, low, cache, pending, data, pos,
+               decode):
+    """A cell's decisions (formats/packet.md): known? then occupied? then other or free?
+    Returns (its code, its class, the coder's state); the decoder learns the code here."""
+    known, rng, low, cache, pending, pos = _code_bit(
+        code != background, probs[ctx] >> STATE_SHIFT, rng, low, cache, pending, data, pos, decode)
+    _learn(probs, counts, ctx, known)
+    if not known:
+        return background, BACKGROUND, rng, low, cache, pending, pos
+    # decision 2: occupied? (context: the classes of the three face neighbours)
+    ctx = OFF_OCC + grid[yy, x - 1] + 3 * grid[yy - 1, x] + 9 * below[yy, x]
+    occ, rng, low, cache, pending, pos = _code_bit(
+        code == 1, probs[ctx] >> STATE_SHIFT, rng, low, cache, pending, data, pos, decode)
+    _learn(probs, counts, ctx, occ)
+    if occ:
+        return 1, CLASS_OCC, rng, low, cache, pending, pos
+    # decision 3: free, or the fourth code (unknown in a delta)?
+    alt, rng, low, cache, pending, pos = _code_bit(
+        code == other, probs[OFF_ALT] >> STATE_SHIFT, rng, low, cache, pending, data, pos, decode)
+    _learn(probs, counts, OFF_ALT, alt)
+    return (other if alt else 0), CLASS_OTHER, rng, low, cache, pending, pos
+
+
 def _make_coder(decode: bool):
     """The encoder or the decoder: one loop written once, so both sides build the same contexts;
     `decode` is a compile-time constant of each, so neither carries the other's branches."""
@@ -143,44 +184,10 @@ def _make_coder(decode: bool):
                 window = (np.int64(around[PAD]) << 8) | around[PAD + 1]  # byte 2: x-1, 1: x, 0: x+1
                 r0 = 0  # bit 0: cell x-1 of this row, bit 1: cell x-2
                 for x in range(PAD, nx + PAD):
-                    if window == 0 and r0 == 0:
-                        ctx = OFF_FAR  # nothing around: most cells of a sparse box
-                    else:
-                        left = window >> 16
-                        mid = (window >> 8) & 0xFF
-                        right = window & 0xFF
-                        # the bits in NEAR's and FAR's order (top of this file), from the row bits
-                        near = ((r0 & 1) | ((right & 1) << 1) | ((mid & 1) << 2) | ((left & 1) << 3)
-                                | ((right & 2) << 3) | ((mid & 2) << 4) | ((left & 2) << 5)
-                                | ((mid & 4) << 5) | ((mid & 8) << 5))
-                        if near != 0:
-                            ctx = near
-                        else:
-                            ctx = OFF_FAR + (((right >> 2) & 1) | ((left >> 1) & 2) | ((right >> 1) & 4)
-                                             | (left & 8) | ((r0 >> 1) << 4) | ((mid & 16) << 1) | ((mid & 32) << 1))
-                    code = background if decode else codes[i]
-                    # decision 1: is the cell not background?
-                    known, rng, low, cache, pending, pos = _code_bit(
-                        code != background, probs[ctx] >> STATE_SHIFT, rng, low, cache, pending, data, pos, decode)
-                    _learn(probs, counts, ctx, known)
-                    cls = BACKGROUND
-                    if known:
-                        # decision 2: occupied? (context: the classes of the three face neighbours)
-                        ctx = OFF_OCC + grid[y, x - 1] + 3 * grid[y - 1, x] + 9 * below[y, x]
-                        occ, rng, low, cache, pending, pos = _code_bit(
-                            code == 1, probs[ctx] >> STATE_SHIFT, rng, low, cache, pending, data, pos, decode)
-                        _learn(probs, counts, ctx, occ)
-                        cls = CLASS_OCC
-                        if not occ:
-                            # decision 3: free, or the fourth code (unknown in a delta)?
-                            alt, rng, low, cache, pending, pos = _code_bit(
-                                code == other, probs[OFF_ALT] >> STATE_SHIFT, rng, low, cache, pending, data, pos,
-                                decode)
-                            _learn(probs, counts, OFF_ALT, alt)
-                            cls = CLASS_OTHER
-                            code = other if alt else 0
-                        else:
-                            code = 1
+                    ctx = _cell_context(window, r0)
+                    code, cls, rng, low, cache, pending, pos = _code_cell(
+                        background if decode else codes[i], background, other, ctx, grid, below, y, x, probs, counts,
+                        rng, low, cache, pending, data, pos, decode)
                     if decode:
                         codes[i] = code
                     i += 1
@@ -203,3 +210,147 @@ encode_box = _make_coder(False)
 # decode_box(codes, nx, ny, nz, background, data): fills `codes`; returns the bytes consumed
 # (more than len(data) when the stream is truncated), or -1 without the leading zero byte
 decode_box = _make_coder(True)
+
+
+# Codec cm (4): the box in 8 x 8 x 8 blocks. Before each slab of 8 planes, one decision per block
+# of the slab says whether it holds any non-background cell (context: the flags of the blocks
+# before it in x, in y and in the slab below); then the cells of the flagged blocks alone are
+# coded, in nested order, exactly as codec 3 codes them. Cells of unflagged blocks are
+# background and cost nothing, so the work follows the changed cells, not the box's volume.
+BLOCK = 8
+OFF_BLOCK = N_CONTEXTS  # 8 contexts for the block flags
+N_CONTEXTS_BLOCKS = N_CONTEXTS + 8
+
+
+def _make_block_coder(decode: bool):
+    """Codec 4's encoder or decoder (one loop, `decode` a compile-time constant of each)."""
+
+    @njit(cache=True)
+    def code_blocks(idx, vals, nx, ny, nz, background, data, out_idx, out_vals):
+        other = 2 if background == 3 else 3
+        bxn = (nx + BLOCK - 1) // BLOCK
+        byn = (ny + BLOCK - 1) // BLOCK
+        bzn = (nz + BLOCK - 1) // BLOCK
+        if nx == 0 or ny == 0 or nz == 0:
+            bzn = 0
+        planes = np.zeros((3, ny + 2 * PAD if bzn else 0, nx + 2 * PAD if bzn else 0), dtype=np.uint8)
+        around = np.zeros(nx + 2 * PAD, dtype=np.uint8)
+        # block flags of this slab and the one below, padded by one block before x and y
+        flags = np.zeros((2, byn + 1, bxn + 1), dtype=np.uint8)
+        # per slab parity, each block row's runs of flagged blocks (x0, x1 in cells): row by's
+        # runs are runs[p, run_at[p, by]:run_at[p, by + 1]]
+        runs = np.empty((2, byn * (bxn + 1) + 1, 2), dtype=np.int64)
+        run_at = np.zeros((2, byn + 1), dtype=np.int64)
+        probs = np.full(N_CONTEXTS_BLOCKS, STATE_ONE // 2, dtype=np.int64)
+        counts = np.zeros(N_CONTEXTS_BLOCKS, dtype=np.int64)
+        cap = data.shape[0]
+        rng = np.int64(0xFFFFFFFF)
+        low = np.int64(0)
+        cache = np.int64(0)
+        pending = np.int64(1)
+        pos = 0
+        if decode:
+            if cap < 1 or data[0] != 0:
+                return -1, 0
+            pos = 1
+            for _ in range(4):
+                low = (low << 8) | (np.int64(data[pos]) if pos < cap else 0)
+                pos += 1
+        plane_cells = np.int64(nx) * ny
+        j = 0  # encoder: next cell of idx; decoder: cells written to out_*
+        n_in = idx.shape[0]
+        for bz in range(bzn):
+            par = bz & 1
+            cur = flags[par]
+            below_flags = flags[1 - par]
+            cur[:, :] = 0
+            if not decode:
+                # the blocks this slab's cells lie in
+                k = j
+                while k < n_in and idx[k] < (bz + 1) * BLOCK * plane_cells:
+                    cell = idx[k]
+                    cur[(cell // nx) % ny // BLOCK + 1, cell % nx // BLOCK + 1] = 1
+                    k += 1
+                if pos + pending + 2 * bxn * byn + 8 > cap:
+                    return -1, j
+            n_runs = 0
+            for by in range(byn):
+                run_at[par, by] = n_runs
+                for bx in range(bxn):
+                    ctx = OFF_BLOCK + cur[by + 1, bx] + 2 * cur[by, bx + 1] + 4 * below_flags[by + 1, bx + 1]
+                    flag, rng, low, cache, pending, pos = _code_bit(
+                        cur[by + 1, bx + 1] != 0, probs[ctx] >> STATE_SHIFT, rng, low, cache, pending, data, pos, decode)
+                    _learn(probs, counts, ctx, flag)
+                    cur[by + 1, bx + 1] = flag
+                    if flag:
+                        if bx > 0 and cur[by + 1, bx] and n_runs > run_at[par, by]:
+                            runs[par, n_runs - 1, 1] = min((bx + 1) * BLOCK, nx)  # extends the run before
+                        else:
+                            runs[par, n_runs, 0] = bx * BLOCK
+                            runs[par, n_runs, 1] = min((bx + 1) * BLOCK, nx)
+                            n_runs += 1
+            run_at[par, byn] = n_runs
+            for z in range(bz * BLOCK, min((bz + 1) * BLOCK, nz)):
+                grid = planes[z % 3]
+                if z >= 3:  # the slot holds plane z-3: clear the cells it coded (its runs)
+                    old = ((z - 3) // BLOCK) & 1
+                    for y in range(ny):
+                        by = y // BLOCK
+                        for r in range(run_at[old, by], run_at[old, by + 1]):
+                            grid[y + PAD, runs[old, r, 0] + PAD:runs[old, r, 1] + PAD] = 0
+                below = planes[(z + 2) % 3]
+                below2 = planes[(z + 1) % 3]
+                for y in range(ny):
+                    by = y // BLOCK
+                    yy = y + PAD
+                    for r in range(run_at[par, by], run_at[par, by + 1]):
+                        x0 = runs[par, r, 0] + PAD
+                        x1 = runs[par, r, 1] + PAD
+                        if not decode and pos + pending + 5 * (x1 - x0) + 8 > cap:
+                            return -1, j
+                        for xx in range(x0 - 1, x1 + 1):  # the row bits the window reads
+                            around[xx] = ((grid[yy - 1, xx] != 0) | ((below[yy, xx] != 0) << 1)
+                                          | ((below[yy - 1, xx] != 0) << 2) | ((below[yy + 1, xx] != 0) << 3)
+                                          | ((grid[yy - 2, xx] != 0) << 4) | ((below2[yy, xx] != 0) << 5))
+                        window = (np.int64(around[x0 - 1]) << 16) | (np.int64(around[x0]) << 8) | around[x0 + 1]
+                        r0 = 0  # the two cells before a run lie in blank blocks or outside the box
+                        cell = (np.int64(z) * ny + y) * nx + (x0 - PAD)
+                        for x in range(x0, x1):
+                            ctx = _cell_context(window, r0)
+                            code = background
+                            if not decode and j < n_in and idx[j] == cell:
+                                code = vals[j]
+                                j += 1
+                            code, cls, rng, low, cache, pending, pos = _code_cell(
+                                code, background, other, ctx, grid, below, yy, x, probs, counts, rng, low, cache,
+                                pending, data, pos, decode)
+                            if decode and cls != BACKGROUND:
+                                if j >= out_idx.shape[0]:
+                                    return -2, j  # more cells than the packet declares
+                                out_idx[j] = cell
+                                out_vals[j] = code
+                                j += 1
+                            grid[yy, x] = cls
+                            r0 = ((r0 << 1) & 3) | (cls != 0)
+                            window = ((window << 8) & 0xFFFFFF) | around[x + 2]
+                            cell += 1
+        if not decode:
+            if j != n_in:
+                return -3, j  # a cell outside the box, or idx not in nested order
+            for _ in range(5):
+                if pos + pending + 1 > cap:
+                    return -1, j
+                low, cache, pending, pos = _shift_low(low, cache, pending, data, pos)
+        return pos, j
+
+    return code_blocks
+
+
+# encode_blocks(idx, vals, nx, ny, nz, background, out, _, _): idx = nested indices of the
+# non-background cells, ascending, vals their codes; returns (bytes written, cells): bytes -1 when
+# `out` is too small (call again, larger), -3 when idx is not ascending inside the box
+encode_blocks = _make_block_coder(False)
+# decode_blocks(_, _, nx, ny, nz, background, data, out_idx, out_vals): writes the non-background
+# cells; returns (bytes consumed, cells): bytes -1 without the leading zero byte, -2 when the
+# cells outnumber out_idx
+decode_blocks = _make_block_coder(True)

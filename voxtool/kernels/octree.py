@@ -239,3 +239,55 @@ def collapse_leaves(codes, depths, values, deepest):
             n -= 7  # the first of the 8 children starts where its parent does
             depths[n - 1] = d - 1
     return n
+
+
+@njit(cache=True, inline="always")
+def _shared_depth(a, b):
+    """Deepest depth at which finest-level codes a and b lie in the same node (16: equal)."""
+    x = a ^ b
+    if x == 0:
+        return 16
+    t = 0
+    while (x >> (3 * (t + 1))) != 0:
+        t += 1
+    return 15 - t
+
+
+@njit(cache=True, nogil=True)
+def inner_nodes(codes, depths):
+    """Inner nodes of the tree whose leaves are these Morton-ordered, non-overlapping leaves: each
+    leaf adds its ancestors below the deepest one it shares with the leaf before it (in depth-
+    first order every ancestor shared with an earlier leaf is shared with the previous one)."""
+    total = np.int64(0)
+    for i in range(codes.shape[0]):
+        d = np.int64(depths[i])
+        if i == 0:
+            total += d
+            continue
+        shared = min(_shared_depth(codes[i], codes[i - 1]), d - 1, np.int64(depths[i - 1]) - 1)
+        total += d - 1 - shared
+    return total
+
+
+@njit(cache=True, nogil=True)
+def voxel_values(codes, prefixes, prefix_rows, directory, vals, shift, out_value, out_slot):
+    """Log-odds at finest-level codes (NaN where no brick holds the voxel) and each code's brick
+    slot (-1: none). Sorted codes find their brick once per brick; a shard's row is looked up
+    (binary search over the sorted shard prefixes) once per shard."""
+    last_brick = np.int64(-1)
+    slot = np.int64(-1)
+    last_prefix = np.int64(-1)
+    row = np.int64(-1)
+    per_shard = directory.shape[1]
+    for i in range(codes.shape[0]):
+        brick = codes[i] >> BRICK_BITS
+        if brick != last_brick:
+            last_brick = brick
+            prefix = brick >> shift
+            if prefix != last_prefix:
+                last_prefix = prefix
+                k = np.searchsorted(prefixes, prefix)
+                row = prefix_rows[k] if k < prefixes.shape[0] and prefixes[k] == prefix else -1
+            slot = directory[row, brick & (per_shard - 1)] if row >= 0 else -1
+        out_slot[i] = slot
+        out_value[i] = vals[slot * BRICK + (codes[i] & (BRICK - 1))] if slot >= 0 else np.nan

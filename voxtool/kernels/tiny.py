@@ -33,13 +33,17 @@ def _alloc(free, meta):
 
 
 @njit(cache=True)
-def tiny_apply(pool, free, meta, packed, offset, depth, hit, miss, prior, lmin, lmax):
-    """Apply one scan's updates (OctoMap Morton code << 1 | occupied), each with eager pruning
-    on the way back up, as OctoMap does. Updates outside the map, or needing a block when the pool
-    is exhausted, are dropped and counted; the tree stays valid."""
+def tiny_apply(pool, free, meta, packed, offset, depth, hit, miss, prior, lmin, lmax, start, grow):
+    """Apply one scan's updates (OctoMap Morton code << 1 | occupied) from index `start`, each
+    with eager pruning on the way back up, as OctoMap does. Updates outside the map are dropped
+    and counted. An update that needs a block when the pool is exhausted: with `grow`, the
+    kernel stops and returns its index (the caller grows the pool and calls again from there;
+    blocks it already split stay split, children holding their parent's level, which is the
+    same tree); without, it is dropped and counted, the tree staying valid. Returns
+    len(packed) when done."""
     path = np.zeros(depth + 1, dtype=np.int64)
     size = 1 << depth
-    for i in range(packed.shape[0]):
+    for i in range(start, packed.shape[0]):
         code = packed[i] >> 1
         step = hit if (packed[i] & 1) else -miss
         x = compact16(code) - offset
@@ -62,6 +66,8 @@ def tiny_apply(pool, free, meta, packed, offset, depth, hit, miss, prior, lmin, 
                     break
                 b = _alloc(free, meta)
                 if b < 0:
+                    if grow:
+                        return i
                     meta[T_DROPPED] += 1
                     ok = False
                     break
@@ -102,6 +108,7 @@ def tiny_apply(pool, free, meta, packed, offset, depth, hit, miss, prior, lmin, 
                 meta[T_FREE_TOP] += 1
             else:
                 pool[n] = (b << 4) | best
+    return packed.shape[0]
 
 
 @njit(cache=True)

@@ -33,7 +33,8 @@ def make_backend(name: str, params: MapParams, sensor: SensorModel, **options) -
     known = [k for k in inspect.signature(factory.__init__).parameters if k not in ("self", "params", "sensor")]
     unknown = sorted(set(options) - set(known))
     if unknown:
-        raise ParameterError(f"backend '{name}' has no option {', '.join(unknown)} (it takes {', '.join(known)})")
+        takes = ", ".join(known) if known else "none"
+        raise ParameterError(f"backend '{name}' has no option {', '.join(unknown)} (it takes {takes})")
     return factory(params, sensor, **{k: _coerce(name, k, v, hints.get(k)) for k, v in options.items()})
 
 

@@ -80,7 +80,10 @@ class MapBackend(Protocol):
         """(leaf nodes, inner nodes)."""
 
     def memory_bytes(self) -> int:
-        """Bytes held by the map's own storage."""
+        """Bytes the map's storage has allocated (room to grow included)."""
+
+    def used_bytes(self) -> int:
+        """Bytes of that storage holding the map's content."""
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         """Arrays that make the map lossless in a snapshot."""

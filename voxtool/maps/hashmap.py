@@ -373,6 +373,12 @@ class HashVoxelMap:
         return int(self.rec.nbytes + self.free.nbytes + self.tab.nbytes + self.bkeys.nbytes + self.bmask.nbytes
                    + self.ipool.nbytes)
 
+    def used_bytes(self) -> int:
+        """Live records (64 B) with their table slots (4 B), bricks (8 B id + 64 B mask) and
+        inflation look-up tables in use."""
+        live = int(self.meta[K.M_LIVE])
+        return int(live * (64 + 4) + int(self.meta[K.M_BRICKS]) * 72 + int(self.imeta[0]) * 4)
+
     def _history(self) -> np.ndarray:
         """Record indices of the history list, oldest first."""
         out = np.empty(int(self.meta[K.M_HSIZE]), dtype=np.int64)

@@ -216,8 +216,14 @@ class OctoCacheMap:
             return 0
         return int(self.count.nbytes + self.cell_code.nbytes + self.cell_val.nbytes)
 
+    canonical_leaves = True
+
     def memory_bytes(self) -> int:
         return self.tree.memory_bytes() + self.cache_bytes()
+
+    def used_bytes(self) -> int:
+        cells = int(self.count.sum()) if self.count is not None else 0
+        return self.tree.used_bytes() + cells * (8 + 4)
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         self.flush()

@@ -200,8 +200,13 @@ class OctreeMap:
     def node_counts(self) -> tuple[int, int]:
         return self.tree.node_counts()
 
+    canonical_leaves = True  # leaves() is OctoMap's pruned tree (voxtool.maps.tree)
+
     def memory_bytes(self) -> int:
         return self.tree.memory_bytes()
+
+    def used_bytes(self) -> int:
+        return self.tree.used_bytes()
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         leaves = self.leaves()
@@ -215,5 +220,4 @@ class OctreeMap:
         return {}  # threads and shard depth change how fast a map is built, never what it holds
 
     def extra_stats(self) -> dict[str, Any]:
-        return {"bricks": self.tree.n_bricks, "shards": self.tree.n_rows, "shard_depth": self.tree.depth,
-                "threads": self.threads}
+        return {"pool_bricks": self.tree.n_bricks, "pool_shards": self.tree.n_rows, "shard_depth": self.tree.depth}

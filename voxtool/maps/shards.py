@@ -24,6 +24,7 @@ import numpy as np
 from voxtool.errors import ParameterError
 from voxtool.kernels import octree as K
 from voxtool.maps.base import Leaves
+from voxtool.maps.tree import collapse, node_counts
 from voxtool.parallel import run_parts
 
 DEFAULT_SHARD_DEPTH = 10  # shards of 64^3 voxels, 512 bricks: a 2 KiB directory row each
@@ -41,25 +42,6 @@ def check_shard_depth(depth: int) -> int:
 
 def leaf_spans(depths: np.ndarray) -> np.ndarray:
     return np.int64(1) << (3 * (16 - depths.astype(np.int64)))
-
-
-def collapse(leaves: Leaves, deepest: int) -> Leaves:
-    """OctoMap's pruning of Morton-ordered leaves: 8 equal sibling leaves at depth <= deepest
-    become their parent, repeatedly (on copies)."""
-    codes, depths, values = leaves.codes.copy(), leaves.depths.copy(), leaves.values.copy()
-    n = K.collapse_leaves(codes, depths, values, deepest)
-    return Leaves(codes[:n], depths[:n], values[:n])
-
-
-def inner_nodes_above(codes: np.ndarray, depths: np.ndarray, depth: int) -> int:
-    """Inner nodes at depths < `depth` above Morton-sorted nodes (codes, depths): their distinct
-    ancestors."""
-    total = 0
-    for e in range(depth):
-        below = codes[depths > e]
-        if below.shape[0]:
-            total += int(np.count_nonzero(np.diff(below >> (3 * (16 - e)))) + 1)
-    return total
 
 
 def balanced_runs(starts: np.ndarray, parts: int) -> list[tuple[int, int]]:
@@ -248,26 +230,22 @@ class ShardedOctree:
                       np.ascontiguousarray(leaves.values, dtype=np.float32))
 
     # -- reading ---------------------------------------------------------------------------
-    def _slot_of(self, bricks: np.ndarray) -> np.ndarray:
-        """Arena slot of each brick code (-1: none)."""
-        out = np.full(bricks.shape[0], -1, dtype=np.int64)
-        if self.prefixes.shape[0] == 0:
-            return out
-        pre = bricks >> self.shift
-        idx = np.minimum(np.searchsorted(self.prefixes, pre), self.prefixes.shape[0] - 1)
-        ok = self.prefixes[idx] == pre
-        out[ok] = self.directory[self.prefix_rows[idx[ok]], bricks[ok] & (self.per_shard - 1)]
-        return out
+    def _lookup(self, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(log-odds, brick slot) at finest-level codes: NaN / -1 where no brick holds one."""
+        codes = np.ascontiguousarray(codes, dtype=np.int64)
+        value = np.empty(codes.shape[0], dtype=np.float32)
+        slot = np.empty(codes.shape[0], dtype=np.int64)
+        K.voxel_values(codes, self.prefixes, self.prefix_rows, self.directory, self.arena.vals, self.shift, value, slot)
+        return value, slot
 
     def values(self, codes: np.ndarray) -> np.ndarray:
         """Log-odds at finest-level Morton codes; NaN where unknown."""
         codes = np.asarray(codes, dtype=np.int64)
-        slots = self._slot_of(codes >> K.BRICK_BITS)
-        inside = slots >= 0
-        out = np.full(codes.shape[0], np.nan, dtype=np.float32)
-        out[inside] = self.arena.vals[slots[inside] * K.BRICK + (codes[inside] & (K.BRICK - 1))]
-        if self.coarse.codes.shape[0] and not inside.all():
-            out[~inside] = self._in_leaves(self.coarse, codes[~inside])[0]
+        out, slots = self._lookup(codes)
+        if self.coarse.codes.shape[0]:
+            outside = slots < 0
+            if outside.any():
+                out[outside] = self._in_leaves(self.coarse, codes[outside])[0]
         return out
 
     @staticmethod
@@ -287,9 +265,8 @@ class ShardedOctree:
         where unknown."""
         codes = np.ascontiguousarray(codes, dtype=np.int64)
         d = self._derive()
-        value = self.values(codes)
+        value, slots = self._lookup(codes)
         depth = np.full(codes.shape[0], -1, dtype=np.int64)
-        slots = self._slot_of(codes >> K.BRICK_BITS)
         index = np.where(slots >= 0, d.rank[np.maximum(slots, 0)], -1)
         index[np.isnan(value) & (slots >= 0)] = -1
         K.leaf_depths(codes, index, d.l15, d.l14, d.root_leaf, depth)
@@ -324,14 +301,7 @@ class ShardedOctree:
 
     def node_counts(self) -> tuple[int, int]:
         """(leaf nodes, inner nodes) of the tree, as OctoMap counts them."""
-        d = self._derive()
-        inner_bricks = ~d.root_leaf
-        leaves = int(d.counts[inner_bricks, 0].sum()) + len(d.top)
-        codes = np.concatenate([d.top.codes, d.codes[inner_bricks] << K.BRICK_BITS])
-        depths = np.concatenate([d.top.depths, np.full(int(inner_bricks.sum()), K.BRICK_DEPTH, np.uint8)])
-        order = np.argsort(codes, kind="stable")
-        inner = int(d.counts[inner_bricks, 1].sum()) + inner_nodes_above(codes[order], depths[order], K.BRICK_DEPTH)
-        return leaves, inner
+        return node_counts(self.leaves())
 
     def leaves(self) -> Leaves:
         """All leaves of the tree in Morton order."""
@@ -360,6 +330,12 @@ class ShardedOctree:
                   balanced_runs(np.concatenate([[0], np.cumsum(per)]), self.threads))
         d.leaves = Leaves(codes, depths, values)
         return d.leaves
+
+    def used_bytes(self) -> int:
+        """Bytes holding the map's content: its bricks, directory rows and coarse leaves (as
+        many for a map loaded from a snapshot as for the one that wrote it)."""
+        return int(self.n_bricks * K.BRICK * 4 + self.n_rows * self.per_shard * 4 + self.n_bricks * 8
+                   + self.coarse.codes.shape[0] * 13)
 
     def memory_bytes(self) -> int:
         """Bytes of the arrays holding the map (allocated capacity)."""

@@ -24,15 +24,16 @@ from voxtool.parallel import resolve_threads
 from voxtool.sources.scan import Scan
 
 LEVEL_STEP_LOG = 0.4054651  # log-odds of one level: OctoMap's miss
+MAX_BLOCKS = 1 << 28  # 32-bit words hold 28 bits of block index
 
 
 class TinyMap:
     name = "tiny"
 
-    def __init__(self, params: MapParams, sensor: SensorModel, pool_blocks: int = 4096, map_size: float | None = None,
-                 hit: int = 2, miss: int = 1, prior: int = 6, threads: int = 0) -> None:
-        if not 2 <= pool_blocks <= (1 << 28):
-            raise ParameterError(f"pool_blocks={pool_blocks} must lie in 2..2^28")
+    def __init__(self, params: MapParams, sensor: SensorModel, pool_blocks: int | None = None,
+                 map_size: float | None = None, hit: int = 2, miss: int = 1, prior: int = 6, threads: int = 0) -> None:
+        if pool_blocks is not None and not 2 <= pool_blocks <= MAX_BLOCKS:
+            raise ParameterError(f"pool_blocks={pool_blocks} must lie in 2..2^28 (or none: grown as the map needs)")
         if not (1 <= prior < 15 and 1 <= hit <= 14 and 1 <= miss <= 14):
             raise ParameterError(f"tiny levels hit={hit} miss={miss} prior={prior} out of range (levels are 1..15)")
         self.params, self.sensor = params, sensor
@@ -45,16 +46,32 @@ class TinyMap:
         if self.depth > 16:
             raise ParameterError(f"map_size={size} m at {params.resolution} m needs depth {self.depth} > 16")
         self.offset = 32768 - (1 << (self.depth - 1))  # tiny key 0 = OctoMap key offset
-        self.pool_blocks, self.hit, self.miss, self.prior = pool_blocks, hit, miss, prior
-        dtype = np.uint16 if pool_blocks <= 4096 else np.uint32  # 12 index bits fit in 16-bit words
-        self.pool = np.zeros(pool_blocks * 8, dtype=dtype)
-        self.free = np.zeros(pool_blocks, dtype=np.int64)
-        self.meta = np.array([0, 1, pool_blocks, 0, 0], dtype=np.int64)
+        self.hit, self.miss, self.prior = hit, miss, prior
+        # a budget (the paper's fixed pool: updates that need more are dropped and counted), or
+        # none: the pool grows as the map needs (32-bit words)
+        self.budget = pool_blocks
+        blocks = pool_blocks if pool_blocks is not None else 4096
+        dtype = np.uint16 if pool_blocks is not None and pool_blocks <= 4096 else np.uint32  # 12 index bits: 16-bit words
+        self.pool = np.zeros(blocks * 8, dtype=dtype)
+        self.free = np.zeros(blocks, dtype=np.int64)
+        self.meta = np.array([0, 1, blocks, 0, 0], dtype=np.int64)
+
+    @property
+    def pool_blocks(self) -> int:
+        return int(self.meta[K.T_BLOCKS])
+
+    def _grow(self) -> None:
+        blocks = min(2 * self.pool_blocks, MAX_BLOCKS)
+        if blocks == self.pool_blocks:
+            raise ParameterError(f"tiny map: the pool would need more than {MAX_BLOCKS} blocks")
+        self.pool = np.concatenate([self.pool, np.zeros((blocks - self.pool_blocks) * 8, dtype=self.pool.dtype)])
+        self.free = np.concatenate([self.free, np.zeros(blocks - self.free.shape[0], dtype=np.int64)])
+        self.meta[K.T_BLOCKS] = blocks
 
     # -- MapBackend -------------------------------------------------------------------------
     def warm_up(self) -> None:
         OctreeMap(self.params, self.sensor, threads=1).warm_up()
-        probe = TinyMap(MapParams(resolution=0.5), self.sensor, pool_blocks=self.pool_blocks, map_size=8.0, threads=1)
+        probe = TinyMap(MapParams(resolution=0.5), self.sensor, pool_blocks=self.budget, map_size=8.0, threads=1)
         probe.integrate(Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
         probe.leaves()
 
@@ -63,8 +80,13 @@ class TinyMap:
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         t0 = time.perf_counter()
-        K.tiny_apply(self.pool, self.free, self.meta, prepared.packed, self.offset, self.depth,
-                     self.hit, self.miss, self.prior, 1, 15)
+        start, n = 0, prepared.packed.shape[0]
+        while True:
+            start = K.tiny_apply(self.pool, self.free, self.meta, prepared.packed, self.offset, self.depth,
+                                 self.hit, self.miss, self.prior, 1, 15, start, self.budget is None)
+            if start >= n:
+                break
+            self._grow()
         return IntegrateTiming(raycast=prepared.seconds, update=time.perf_counter() - t0,
                                voxel_updates=int(prepared.packed.shape[0]), ray_steps=prepared.steps,
                                rays=prepared.rays, merged_rays=prepared.merged_rays)
@@ -108,12 +130,16 @@ class TinyMap:
     def memory_bytes(self) -> int:
         return int(self.pool.nbytes)
 
+    def used_bytes(self) -> int:
+        return int(self.blocks_used() * 8 * self.pool.itemsize)
+
     def extra_stats(self) -> dict[str, Any]:
         return self.pool_stats()
 
     def pool_stats(self) -> dict:
         used = self.blocks_used()
-        return {"pool_blocks": self.pool_blocks, "pool_blocks_used": used, "pool_usage": round(used / self.pool_blocks, 6),
+        return {"pool_blocks": self.pool_blocks, "pool_budget": self.budget, "pool_blocks_used": used,
+                "pool_usage": round(used / self.pool_blocks, 6),
                 "bytes_per_node": int(self.pool.itemsize), "dropped_updates": int(self.meta[K.T_DROPPED]),
                 "outside_map_updates": int(self.meta[K.T_OUTSIDE]), "depth": self.depth, "map_size_m": self.map_size}
 
@@ -126,15 +152,18 @@ class TinyMap:
         from voxtool.errors import FormatError
 
         pool, free, meta = arrays.get("tiny_pool"), arrays.get("tiny_free"), arrays.get("tiny_meta")
-        if pool is None or free is None or meta is None or pool.shape[0] != self.pool.shape[0] \
-                or free.shape[0] != self.free.shape[0] or meta.shape[0] != 5:
-            raise FormatError("tiny snapshot: pool arrays missing or of the wrong size")
-        if np.any((pool >> 4) >= self.pool_blocks) or np.any(free < 0) or np.any(free >= self.pool_blocks):
+        if pool is None or free is None or meta is None or meta.shape[0] != 5:
+            raise FormatError("tiny snapshot: pool arrays missing")
+        blocks = pool.shape[0] // 8
+        if pool.shape[0] % 8 or free.shape[0] != blocks or blocks > MAX_BLOCKS or meta[K.T_BLOCKS] != blocks \
+                or (self.budget is not None and blocks != self.budget):
+            raise FormatError("tiny snapshot: pool arrays of the wrong size")
+        if np.any((pool >> 4) >= blocks) or np.any(free < 0) or np.any(free >= blocks):
             raise FormatError("tiny snapshot: a child index points outside the pool")
-        self.pool[:] = pool.astype(self.pool.dtype)
-        self.free[:] = free
-        self.meta[:] = meta
+        self.pool = pool.astype(self.pool.dtype)
+        self.free = free.astype(np.int64)
+        self.meta = meta.astype(np.int64)
 
     def extra_meta(self) -> dict[str, Any]:
-        return {"pool_blocks": self.pool_blocks, "map_size": self.map_size, "hit": self.hit, "miss": self.miss,
+        return {"pool_blocks": self.budget, "map_size": self.map_size, "hit": self.hit, "miss": self.miss,
                 "prior": self.prior}

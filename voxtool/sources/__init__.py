@@ -50,8 +50,9 @@ def _selected(path: Path, total: int, options: SourceOptions) -> int:
     (a script slicing past the end should not get an empty map and exit 0)."""
     n = len(range(total)[options.start:options.stop:options.every])
     if n == 0 and total > 0:
-        raise ParameterError(f"{path}: --start {options.start} --stop {options.stop} --every {options.every} "
-                             f"selects none of its {total} scans")
+        stop = f" --stop {options.stop}" if options.stop is not None else ""
+        raise ParameterError(f"{path}: --start {options.start}{stop} --every {options.every} selects none of its "
+                             f"{total} scans (indices 0..{total - 1})")
     return n
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from voxtool.errors import SourceError
+from voxtool.errors import SourceError, mcap_problem
 from voxtool.geometry import Pose, interpolate_pose
 from voxtool.sources.pcd import MAX_POINTS
 
@@ -113,7 +113,7 @@ class McapCloudSource:
         except OSError as err:
             raise SourceError(f"{self.path}: cannot read: {err.strerror}") from err
         except _decode_errors() as err:
-            raise SourceError(f"{self.path}: not a readable MCAP file ({err})") from err
+            raise SourceError(f"{self.path}: cannot be read as MCAP: {mcap_problem(err)}") from err
         if summary is None:
             raise SourceError(f"{self.path}: MCAP has no summary section (truncated or not finished)")
         topics = {c.topic: summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "" for c in summary.channels.values()}
@@ -157,7 +157,7 @@ class McapCloudSource:
                         raise SourceError(f"{self.path}: transform {key[0]} -> {key[1]} stamps go backwards at {stamp} ns")
                     series.add(stamp, _pose_of(tr.transform.translation, tr.transform.rotation))
         except _decode_errors() as err:
-            raise SourceError(f"{self.path}: corrupt MCAP while reading poses ({err})") from err
+            raise SourceError(f"{self.path}: cannot read its poses: {mcap_problem(err)}") from err
 
     def _root_of(self, frame: str) -> str:
         """The top of the /tf tree above `frame` (the default world frame)."""
@@ -229,7 +229,7 @@ class McapCloudSource:
                 yield points, pose, stamp, len(message.data)
                 index += 1
         except _decode_errors() as err:
-            raise SourceError(f"{self.path}: corrupt MCAP at message {index} of '{self.topic}' ({err})") from err
+            raise SourceError(f"{self.path}: cannot read message {index} of '{self.topic}': {mcap_problem(err)}") from err
 
 
 def _decoder_factory():
