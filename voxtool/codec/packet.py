@@ -281,7 +281,9 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
     if codec in CM_CODECS and scheme != "nested":
         raise FormatError(f"{where}: codec {codec} with scheme {scheme} (cm codes nested boxes only)")
     if codec == "cm":
-        blocks = int(np.prod((dims_a + 7) // 8))
+        from voxtool.kernels.cm import BLOCK
+
+        blocks = int(np.prod((dims_a + BLOCK - 1) // BLOCK))
         limit = CM_CELLS_PER_BYTE * (stored_size + 8)
         # every block and every cell costs the range coder a minimum fraction of a bit: refuse what
         # a stream this short cannot hold before allocating or decoding anything

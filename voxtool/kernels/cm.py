@@ -212,14 +212,44 @@ encode_box = _make_coder(False)
 decode_box = _make_coder(True)
 
 
-# Codec cm (4): the box in 8 x 8 x 8 blocks. Before each slab of 8 planes, one decision per block
+# Codec cm (4): the box in 4 x 4 x 4 blocks. Before each slab of 4 planes, one decision per block
 # of the slab says whether it holds any non-background cell (context: the flags of the blocks
 # before it in x, in y and in the slab below); then the cells of the flagged blocks alone are
 # coded, in nested order, exactly as codec 3 codes them. Cells of unflagged blocks are
 # background and cost nothing, so the work follows the changed cells, not the box's volume.
-BLOCK = 8
+BLOCK = 4
 OFF_BLOCK = N_CONTEXTS  # 8 contexts for the block flags
 N_CONTEXTS_BLOCKS = N_CONTEXTS + 8
+
+
+@njit(cache=True, inline="always")
+def _settled(probs, counts, ctx):
+    """The context's probability sits at its floor with its count saturated: coding a 0 there
+    leaves the model as it is (the update rounds back to the clamp), so only the coder moves."""
+    return probs[ctx] == STATE_MIN and counts[ctx] == COUNT_LIMIT
+
+
+@njit(cache=True, inline="always")
+def _quiet_zero(rng, low, cache, pending, data, pos, decode):
+    """A 0 decision at the floor probability P_MIN in a settled context, as _code_bit codes it;
+    the decoder gets ok = False (and nothing consumed) when the stream holds a 1 there."""
+    bound = (rng >> PROB_BITS) * P_MIN
+    if decode:
+        if low < bound:
+            return False, rng, low, cache, pending, pos
+        low -= bound
+        rng -= bound
+        while rng < TOP:
+            rng <<= 8
+            low = ((low << 8) | (np.int64(data[pos]) if pos < data.shape[0] else 0)) & 0xFFFFFFFF
+            pos += 1
+    else:
+        low += bound
+        rng -= bound
+        while rng < TOP:
+            rng <<= 8
+            low, cache, pending, pos = _shift_low(low, cache, pending, data, pos)
+    return True, rng, low, cache, pending, pos
 
 
 def _make_block_coder(decode: bool):
@@ -278,6 +308,11 @@ def _make_block_coder(decode: bool):
                 run_at[par, by] = n_runs
                 for bx in range(bxn):
                     ctx = OFF_BLOCK + cur[by + 1, bx] + 2 * cur[by, bx + 1] + 4 * below_flags[by + 1, bx + 1]
+                    if (decode or cur[by + 1, bx + 1] == 0) and _settled(probs, counts, ctx):
+                        # most blocks of a sparse box: blank, beside blank ones (same bits, a third the work)
+                        ok, rng, low, cache, pending, pos = _quiet_zero(rng, low, cache, pending, data, pos, decode)
+                        if ok:
+                            continue
                     flag, rng, low, cache, pending, pos = _code_bit(
                         cur[by + 1, bx + 1] != 0, probs[ctx] >> STATE_SHIFT, rng, low, cache, pending, data, pos, decode)
                     _learn(probs, counts, ctx, flag)
@@ -321,6 +356,15 @@ def _make_block_coder(decode: bool):
                             if not decode and j < n_in and idx[j] == cell:
                                 code = vals[j]
                                 j += 1
+                            if ctx == OFF_FAR and code == background and _settled(probs, counts, ctx):
+                                # a background cell with nothing around it (most cells of a filled block
+                                # that one ray crosses): only the coder moves, the classes stay 0
+                                ok, rng, low, cache, pending, pos = _quiet_zero(rng, low, cache, pending, data, pos,
+                                                                                decode)
+                                if ok:
+                                    window = ((window << 8) & 0xFFFFFF) | around[x + 2]
+                                    cell += 1
+                                    continue
                             code, cls, rng, low, cache, pending, pos = _code_cell(
                                 code, background, other, ctx, grid, below, yy, x, probs, counts, rng, low, cache,
                                 pending, data, pos, decode)
