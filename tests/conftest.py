@@ -15,3 +15,57 @@ def shared_data() -> Path:
     if not SHARED.is_dir():
         pytest.skip("../shared/data is absent (it ships only with the development checkout)")
     return SHARED
+
+
+def cli(*args):
+    """Run the voxtool command line in this process: (exit code, stdout, stderr)."""
+    from click.testing import CliRunner
+
+    from voxtool.cli import main
+
+    result = CliRunner().invoke(main, [str(a) for a in args])
+    return result.exit_code, result.stdout, result.stderr
+
+
+@pytest.fixture(scope="session")
+def sample_map(tmp_path_factory):
+    """The shipped sample built once for the whole session: (snapshot path, build --json)."""
+    import json
+
+    out = tmp_path_factory.mktemp("sample") / "map.vxm"
+    code, text, err = cli("build", "--sample", "-o", out, "--json", "--no-progress")
+    assert code == 0, err
+    return out, json.loads(text)
+
+
+SAMPLE_LOG_RANGE = "20"  # m: the paper's sensing range; at full range (180 m) a box is mostly unchanged cells
+
+
+@pytest.fixture(scope="session")
+def sample_map_ranged(tmp_path_factory):
+    """The sample built at the sample logs' sensing range: (snapshot path, build --json)."""
+    import json
+
+    out = tmp_path_factory.mktemp("sample_ranged") / "map.vxm"
+    code, text, err = cli("build", "--sample", "-o", out, "--json", "--no-progress", "--max-range", SAMPLE_LOG_RANGE)
+    assert code == 0, err
+    return out, json.loads(text)
+
+
+@pytest.fixture(scope="session")
+def sample_logs(tmp_path_factory):
+    """Packet logs of the sample at a 20 m sensing range, encoded once: r1 (all scans,
+    hilbert/zstd), cm (all scans, codec cm), robots a (scans 0-2) and b (scans 3-4), and f (scan 0
+    at 0.1 m); each with encode's --json report."""
+    import json
+
+    d = tmp_path_factory.mktemp("logs")
+    specs = {"r1": ["--robot", "r1"], "cm": ["--robot", "r1", "--codec", "cm"], "a": ["--robot", "a", "--stop", "3"],
+             "b": ["--robot", "b", "--start", "3"], "fine": ["--robot", "f", "--resolution", "0.1", "--stop", "1"]}
+    logs = {}
+    for name, args in specs.items():
+        code, text, err = cli("encode", "--sample", "-o", d / f"{name}.mcap", "--json", "--no-progress",
+                              "--max-range", SAMPLE_LOG_RANGE, *args)
+        assert code == 0, err
+        logs[name] = (d / f"{name}.mcap", json.loads(text))
+    return logs

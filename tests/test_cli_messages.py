@@ -19,14 +19,9 @@ def run(*args):
 
 
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory):
-    """Packet logs of the sample: robot a (scans 0-2), robot b (scans 3-4), and a at 0.1 m."""
-    d = tmp_path_factory.mktemp("logs")
-    for name, args in (("a", ["--robot", "a", "--stop", "3"]), ("b", ["--robot", "b", "--start", "3"]),
-                       ("fine", ["--robot", "f", "--resolution", "0.1", "--stop", "1"])):
-        code, _, err = run("encode", "--sample", "-o", d / f"{name}.mcap", "--no-progress", *args)
-        assert code == 0, err
-    return d
+def logs(sample_logs):
+    """The folder of the session's sample logs (a.mcap, b.mcap, fine.mcap, ...)."""
+    return sample_logs["a"][0].parent
 
 
 def test_the_same_log_twice_is_refused(logs, tmp_path):
@@ -98,28 +93,26 @@ def test_compare_knows_which_way_is_worse_and_prints_everything_in_json(logs, tm
     assert code == 6 and "e+" not in out + err and f"{figures['bytes']:,}" in out
 
 
-def test_a_map_that_lost_voxels_is_a_regression_too(tmp_path):
-    code, out, _ = run("build", "--sample", "-o", tmp_path / "m.vxm", "--json", "--no-progress")
-    built = json.loads(out)
+def test_a_map_that_lost_voxels_is_a_regression_too(tmp_path, sample_map):
+    path, built = sample_map
     (tmp_path / "base.json").write_text(json.dumps(dict(built, occupied_voxels=built["occupied_voxels"] + 100,
                                                         leaf_nodes=built["leaf_nodes"] + 100)))
-    code, out, err = run("stats", tmp_path / "m.vxm", "--compare", tmp_path / "base.json", "--json")
+    code, out, err = run("stats", path, "--compare", tmp_path / "base.json", "--json")
     report = json.loads(out)["comparison"]
     assert code == 6 and report["regressions"] == ["occupied_voxels"]  # fewer voxels: changed; fewer nodes: better
     assert report["figures"]["leaf_nodes"]["verdict"] == "improvement"
 
 
-def test_build_and_stats_report_the_same_figures_named_for_what_they_count(tmp_path):
+def test_build_and_stats_report_the_same_figures_named_for_what_they_count(tmp_path, sample_map):
     pyoctomap = pytest.importorskip("pyoctomap")
-    code, out, _ = run("build", "--sample", "-o", tmp_path / "m.vxm", "--json", "--no-progress")
-    built = json.loads(out)
-    code, out, _ = run("stats", tmp_path / "m.vxm", "--json")
+    path, built = sample_map
+    code, out, _ = run("stats", path, "--json")
     stats = json.loads(out)
     for key in ("leaf_nodes", "inner_nodes", "octree_leaf_nodes", "octree_inner_nodes", "pool_bytes_used",
                 "occupied_voxels", "free_voxels"):
         assert stats[key] == built[key], key
     # leaf_nodes / inner_nodes are the tree of the .bt that export writes, as OctoMap reads it
-    code, out, _ = run("export", tmp_path / "m.vxm", "-o", tmp_path / "m.bt", "--json")
+    code, out, _ = run("export", path, "-o", tmp_path / "m.bt", "--json")
     assert code == 0 and json.loads(out)["leaf_nodes"] == stats["leaf_nodes"]
     tree = pyoctomap.OcTree(0.1)
     assert tree.readBinary(str(tmp_path / "m.bt"))
@@ -139,11 +132,10 @@ def test_the_build_time_line_says_the_phases_overlap(tmp_path):
     assert "ray casting" in line and "overlap" in line
 
 
-def test_tiny_builds_a_usable_map_by_default_and_warns_when_a_budget_drops_updates(tmp_path):
+def test_tiny_builds_a_usable_map_by_default_and_warns_when_a_budget_drops_updates(tmp_path, sample_map):
     code, out, err = run("build", "--sample", "--backend", "tiny", "--json", "--no-progress")
     tiny = json.loads(out)
-    _, out, _ = run("build", "--sample", "--json", "--no-progress")
-    octree = json.loads(out)
+    octree = sample_map[1]
     assert code == 0 and err == "" and tiny["dropped_updates"] == 0 and tiny["pool_budget"] is None
     assert 0.8 < tiny["occupied_voxels"] / octree["occupied_voxels"] < 1.2  # its own level arithmetic
     code, out, err = run("build", "--sample", "--backend", "tiny", "--pool-blocks", "64", "--json", "--no-progress")
@@ -154,15 +146,15 @@ def test_tiny_builds_a_usable_map_by_default_and_warns_when_a_budget_drops_updat
     assert "--pool-blocks" in lines[0]
 
 
-def test_every_command_that_writes_confirms_it_the_same_way(logs, tmp_path):
+def test_every_command_that_writes_confirms_it_the_same_way(logs, tmp_path, sample_map):
     share = tmp_path / "share.mcap"
-    assert run("build", "--sample", "--backend", "hashmap", "--share", share, "--no-progress")[0] == 0
-    writes = [["build", "--sample", "-o", tmp_path / "b.vxm", "--no-progress"],
-              ["encode", "--sample", "-o", tmp_path / "e.mcap", "--stop", "1", "--no-progress"],
-              ["decode", logs / "a.mcap", "-o", tmp_path / "d.vxm"],
+    assert run("build", "--sample", "--backend", "hashmap", "--share", share, "--stop", "2", "--no-progress")[0] == 0
+    writes = [["build", "--sample", "-o", tmp_path / "b.vxm", "--stop", "1", "--no-progress"],
+              ["encode", "--sample", "-o", tmp_path / "e.mcap", "--stop", "1", "--max-range", "20", "--no-progress"],
+              ["decode", logs / "b.mcap", "-o", tmp_path / "d.vxm"],
               ["decode", share, "--relay", "-o", tmp_path / "r.vxm"],
               ["merge", logs / "a.mcap", logs / "b.mcap", "-o", tmp_path / "m.vxm"],
-              ["export", tmp_path / "b.vxm", "-o", tmp_path / "x.ply"]]
+              ["export", sample_map[0], "-o", tmp_path / "x.pcd"]]
     for args in writes:
         target = args[args.index("-o") + 1]
         code, out, err = run(*args)
@@ -191,12 +183,11 @@ def test_long_work_shows_progress_when_asked(logs, args, desc):
     assert err == ""
 
 
-def test_export_shows_progress_and_refuses_free_where_it_cannot_apply(tmp_path):
-    assert run("build", "--sample", "-o", tmp_path / "m.vxm", "--no-progress")[0] == 0
-    code, out, err = run("export", tmp_path / "m.vxm", "-o", tmp_path / "m.bt", "--progress")
+def test_export_shows_progress_and_refuses_free_where_it_cannot_apply(tmp_path, sample_map):
+    path = sample_map[0]
+    code, out, err = run("export", path, "-o", tmp_path / "m.bt", "--progress")
     assert code == 0 and "export .bt" in err
     for suffix in (".bt", ".png"):
-        code, out, err = run("export", tmp_path / "m.vxm", "-o", tmp_path / f"f{suffix}", "--free")
+        code, out, err = run("export", path, "-o", tmp_path / f"f{suffix}", "--free")
         assert code == 2 and "--free is for .ply/.pcd" in err and not (tmp_path / f"f{suffix}").exists()
-    assert np.isfinite(json.loads(run("export", tmp_path / "m.vxm", "-o", tmp_path / "f.ply", "--free", "--json")[1])
-                       ["free_voxels"])
+    assert np.isfinite(json.loads(run("export", path, "-o", tmp_path / "f.ply", "--free", "--json")[1])["free_voxels"])
