@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import gc
-import os
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -12,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from voxtool.maps.base import MapBackend
+from voxtool.parallel import usable_cores
 from voxtool.sources import ScanStream
 
 
@@ -67,21 +67,14 @@ class BuildReport:
         }
 
 
-def usable_cores() -> int:
-    """Cores this process may run on (its affinity mask where the OS has one)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
 def read_ahead(backend: MapBackend) -> bool:
     """Whether build() reads scan i+1 on a helper thread while scan i updates the map. A
-    backend that casts its rays itself on two threads (update_codes: the hash map) keeps its
-    second thread busy-waiting between scans (OpenMP's wait policy, for a prompt start of the
-    next cast), so on two cores a reader would be a third thread: measured on quick_shack, it
-    slowed the map update by more than reading ahead saved (docs/backends.md)."""
-    return not hasattr(backend, "update_codes") or usable_cores() > 2
+    backend that casts its rays itself on its threads (update_codes: the hash map) keeps them
+    busy-waiting between scans (OpenMP's wait policy, for a prompt start of the next cast), so a
+    reader would be one thread more than its cores: measured on quick_shack with two threads on
+    two cores, it slowed the map update by more than reading ahead saved (docs/design/backends.md).
+    It reads ahead when a core is free beyond the backend's threads."""
+    return not hasattr(backend, "update_codes") or usable_cores() > getattr(backend, "threads", 1)
 
 
 def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None, on_scan=None) -> BuildReport:
