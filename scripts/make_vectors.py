@@ -39,6 +39,43 @@ def main() -> None:
         (OUT / f"{name}.json").write_text(json.dumps(describe(base, arrays), indent=1) + "\n")
 
 
+def sharded() -> None:
+    """A sharded map of 4 leaves in 2 partitions (formats/sharded.md), parts stored raw."""
+    import hashlib
+
+    from voxtool.distbuild import partition_of
+    from voxtool.io.sharded import FORMAT, MANIFEST, VERSION, part_name
+
+    out = OUT / "sharded_map"
+    out.mkdir(parents=True, exist_ok=True)
+    a = 0xE00000000000
+    codes = np.array([a, a + 1, a + (2 << 18), a + (5 << 18)], np.int64)  # shards of depth 10: code >> 18
+    depths = np.full(4, 16, np.uint8)
+    values = np.array([0.8472979, -0.4054651, 0.8472979, -1.9924302], np.float32)
+    part = partition_of(codes, 10, 2)
+    assert set(part.tolist()) == {0, 1}
+    header = {"voxtool_version": "0.1.0", "backend": "octree",
+              "map_params": {"resolution": 0.2, "max_range": -1.0, "min_range": 0.0, "merge_rays": False},
+              "sensor_model": {"prob_hit": 0.7, "prob_miss": 0.4, "clamp_min": 0.1192, "clamp_max": 0.971,
+                               "occupancy_threshold": 0.5},
+              "backend_params": {}}
+    entries = []
+    for p in range(2):
+        keep = part == p
+        arrays = {"leaf_codes": codes[keep], "leaf_depths": depths[keep], "leaf_values": values[keep]}
+        blob = snapshot_bytes({**header, "info": {"source": "golden", "partition": p}}, arrays, codec="raw")
+        (out / part_name(p)).write_bytes(blob)
+        entries.append({"file": part_name(p), "bytes": len(blob), "sha256": hashlib.sha256(blob).hexdigest(),
+                        "leaves": int(keep.sum())})
+    manifest = {"format": FORMAT, "version": VERSION, "partitions": 2, "shard_depth": 10,
+                "partition_rule": "fibonacci-hash", "backend": "octree", "map_params": header["map_params"],
+                "sensor_model": header["sensor_model"], "info": {"source": "golden", "scans": 1}, "parts": entries}
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=1, sort_keys=True))
+    (OUT / "sharded_map.json").write_text(json.dumps(
+        {"leaf_codes": codes.tolist(), "leaf_depths": depths.tolist(), "leaf_values": values.tolist(),
+         "partition": part.tolist()}, indent=1) + "\n")
+
+
 def packets() -> None:
     from voxtool.codec.packet import KIND_KEYFRAME, decode_packet, encode_packet, occupied_frame
     from voxtool.keys import morton_encode
@@ -93,3 +130,4 @@ def packets() -> None:
 if __name__ == "__main__":
     main()
     packets()
+    sharded()

@@ -119,3 +119,23 @@ def test_zstd_frames_declaring_another_size_are_refused_before_allocating():
         zstd_exact(hostile, 7, "t")
     with pytest.raises(FormatError):
         zstd_exact(b"not zstd", 7, "t")
+
+
+def test_sharded_map_golden_vector():
+    """formats/sharded.md: the manifest's parts hold the map's leaves, each in the partition the
+    Fibonacci hash of its shard prefix names, and the parts are the snapshots of those leaves."""
+    from voxtool.distbuild import partition_of
+    from voxtool.io.sharded import iter_parts, load_sharded, read_manifest
+
+    root = Path(__file__).resolve().parents[1] / "formats" / "vectors"
+    expected = json.loads((root / "sharded_map.json").read_text())
+    manifest = read_manifest(root / "sharded_map")
+    leaves = load_sharded(root / "sharded_map").leaves()
+    assert leaves.codes.tolist() == expected["leaf_codes"]
+    assert leaves.values.tolist() == pytest.approx(expected["leaf_values"])
+    codes = np.array(expected["leaf_codes"], np.int64)
+    assert partition_of(codes, manifest["shard_depth"], manifest["partitions"]).tolist() == expected["partition"]
+    for entry, backend in iter_parts(root / "sharded_map"):
+        p = int(entry["file"][5:10])
+        mine = [c for c, q in zip(expected["leaf_codes"], expected["partition"]) if q == p]
+        assert backend.leaves().codes.tolist() == mine

@@ -72,9 +72,112 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     return result
 
 
+def encode_log(source, output, options: SourceOptions, params: MapParams, sensor: SensorModel,
+               backend_name: str, backend_options: dict, encode_options, progress: bool | None = None) -> dict:
+    """Map `source` and write its voxel changes as a packet log (`voxtool encode`); the report
+    carries the map's dropped-update figures, if any (dropped_warnings)."""
+    from voxtool.atomic import check_writable
+    from voxtool.codec.encode import encode_stream
+    from voxtool.maps import make_backend
+
+    if Path(output).suffix.lower() != ".mcap":
+        raise ParameterError(f"{output}: packet logs are written as .mcap")
+    check_writable(output)
+    mapper = make_backend(backend_name, params, sensor, **backend_options)
+    stream = open_source(source, options)
+    info = {"source": str(source), "backend": backend_name,
+            "backend_params": {k: v for k, v in backend_options.items() if k != "schedule"},
+            "map_params": params.to_dict(), "sensor_model": sensor.to_dict()}
+    result = encode_stream(stream, mapper, output, encode_options, info, progress)
+    extra = mapper.extra_stats()
+    result.update({k: extra[k] for k in DROP_FIGURES if extra.get(k)})
+    return result
+
+
+DROP_FIGURES = ("dropped_updates", "outside_map_updates", "pool_blocks", "map_size_m")
+
+
+def dropped_warnings(where, figures: dict) -> list[str]:
+    """One warning per kind of update a map dropped (the CLI prints them: never silent)."""
+    of = f" of {figures['voxel_updates']:,}" if figures.get("voxel_updates") else ""
+    out = []
+    if figures.get("dropped_updates"):
+        out.append(f"{where}: the tiny map's pool of {figures['pool_blocks']:,} blocks was full: "
+                   f"{figures['dropped_updates']:,}{of} voxel updates were dropped; give --pool-blocks a larger budget, "
+                   "or leave it out to size the pool from the map")
+    if figures.get("outside_map_updates"):
+        out.append(f"{where}: {figures['outside_map_updates']:,}{of} voxel updates fell outside the "
+                   f"tiny map's {figures['map_size_m']:g} m extent and were dropped; give --map-size a larger extent")
+    return out
+
+
+def any_stats(path: str | os.PathLike, progress: bool | None = False) -> dict:
+    """`voxtool stats` of one file: a packet log (.mcap), a sharded map (a directory), a
+    snapshot or a .bt."""
+    path = Path(path)
+    if path.suffix.lower() == ".mcap":
+        from voxtool.codec.logstats import log_stats
+
+        return log_stats(path, progress)
+    if path.is_dir():
+        from voxtool.io.sharded import sharded_stats
+
+        return sharded_stats(path, progress)
+    return map_stats(path, progress)
+
+
+def build_one_map(sources: list, options: SourceOptions, params: MapParams, sensor: SensorModel, client,
+                  output: str | os.PathLike | None = None, sharded: bool = False, progress: bool | None = None,
+                  shard_depth: int | None = None) -> dict:
+    """One octree map from several sources on a Dask cluster (voxtool.distbuild), written as a
+    snapshot, or as a sharded snapshot directory (`sharded`); returns stats + counts."""
+    from voxtool.atomic import check_writable
+    from voxtool.distbuild import distributed_build
+    from voxtool.maps.shards import DEFAULT_SHARD_DEPTH, check_shard_depth
+
+    depth = check_shard_depth(shard_depth if shard_depth is not None else DEFAULT_SHARD_DEPTH)
+    info = {"source": [str(s) for s in sources] if len(sources) > 1 else str(sources[0]),
+            "source_options": options.__dict__}
+    if not sharded:
+        if output is not None:
+            if Path(output).suffix.lower() != ".vxm":
+                raise ParameterError(f"{output}: one map is written as .vxm, or as a directory with --sharded")
+            check_writable(output)
+        backend, report = distributed_build(client, [str(s) for s in sources], options, params, sensor,
+                                            shard_depth=depth, progress=progress)
+        result = backend_stats(backend)
+        result.update(report)
+        if output is not None:
+            from voxtool.io.mapfile import save_map
+
+            save_map(output, backend, {**info, **{k: report[k] for k in ("scans", "points", "points_dropped", "raw_bytes")}})
+        return result
+    from voxtool.io import sharded as S
+
+    staging = S.staging_dir(output)
+    try:
+        entries, report = distributed_build(client, [str(s) for s in sources], options, params, sensor,
+                                            shard_depth=depth, progress=progress, sharded_dir=staging, info=info)
+        info.update({k: report[k] for k in ("scans", "points", "points_dropped", "raw_bytes")})
+        header = {"partitions": report["partitions"], "shard_depth": depth, "partition_rule": "fibonacci-hash",
+                  "backend": "octree", "map_params": params.to_dict(), "sensor_model": sensor.to_dict(), "info": info}
+        S.finish(staging, output, header, entries)
+    except BaseException:
+        S.abandon(staging)
+        raise
+    result = S.sharded_stats(output)
+    result.update(report)
+    return result
+
+
 def load_leaves(path: str | os.PathLike) -> tuple[Leaves, float, float, dict]:
     """(leaves, resolution, threshold log-odds, info) of a .vxm snapshot or an OctoMap .bt file."""
     path = Path(path)
+    if path.is_dir():
+        from voxtool.io.sharded import load_sharded
+
+        backend = load_sharded(path)
+        return backend.leaves(), backend.params.resolution, backend.sensor.threshold_log, {"backend": "octree"}
     if path.suffix.lower() == ".bt":
         from voxtool.io.bt import read_bt
 
@@ -119,17 +222,26 @@ def map_stats(path: str | os.PathLike, progress: bool | None = False) -> dict:
     return out
 
 
+def exporter(output: Path):
+    """The writer of an export file type (its suffix)."""
+    from voxtool.io.export import EXPORTERS
+
+    writer = EXPORTERS.get(output.suffix.lower())
+    if writer is None:
+        raise ParameterError(f"{output}: unknown export type '{output.suffix}' (use {', '.join(sorted(EXPORTERS))})")
+    return writer
+
+
 def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False,
                progress: bool | None = False) -> dict:
     """Write a map (.vxm or .bt) as .bt, .ply, .pcd or .png; returns what was written."""
     from voxtool.atomic import check_writable
-    from voxtool.io.export import EXPORTERS
     from voxtool.progress import bar
 
     output = Path(output)
-    writer = EXPORTERS.get(output.suffix.lower())
-    if writer is None:
-        raise ParameterError(f"{output}: unknown export type '{output.suffix}' (use {', '.join(sorted(EXPORTERS))})")
+    if output.suffix.lower() == ".vxm" and Path(path).suffix.lower() != ".bt":
+        raise ParameterError(f"{output}: only an OctoMap .bt is imported as a snapshot ({path} is one already)")
+    writer = exporter(output)
     check_writable(output)
     with bar(2, f"export {output.suffix}", progress, "step") as steps:
         leaves, res, thr, _ = load_leaves(path)

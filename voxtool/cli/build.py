@@ -9,7 +9,9 @@ import click
 from voxtool.cli.common import (
     backend_options,
     backend_setup,
+    cluster_options,
     emit,
+    emit_fleet,
     handle_errors,
     resolve_source,
     scan_options,
@@ -20,24 +22,88 @@ from voxtool.cli.common import (
 
 
 @click.command()
-@click.argument("source", required=False, type=click.Path(path_type=Path))
+@click.argument("sources", nargs=-1, type=click.Path(path_type=Path))
 @click.option("--sample", is_flag=True, help="Use the small real sample shipped with voxtool (norlab, BSD-3) as SOURCE.")
-@click.option("-o", "--output", type=click.Path(path_type=Path), help="Write the map snapshot (.vxm) here (atomically).")
+@click.option("-o", "--output", type=click.Path(),
+              help="Write the map snapshot (.vxm) here (atomically). A directory (several SOURCES, or a name ending "
+                   "in /): one map per source, named after it. With --sharded: the sharded map's directory.")
 @backend_options
 @scan_options
 @click.option("--share", type=click.Path(path_type=Path), help="hashmap: write newly occupied voxels (ring buffer) as a packet log.")
 @click.option("--ring", default=3, show_default=True, type=int, help="hashmap --share: frames per broadcast (k).")
+@cluster_options
+@click.option("--one-map", is_flag=True,
+              help="Build one map from all SOURCES (in scan-timestamp order) instead of one per source.")
+@click.option("--sharded", is_flag=True,
+              help="Write one map as a sharded snapshot directory, each part by the worker holding it "
+                   "(formats/sharded.md); needs --workers or --scheduler.")
 @click.option("--json", "as_json", is_flag=True, help="Print statistics and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def build(source, sample, output, share, ring, as_json, progress, **kw):
+def build(sources, sample, output, share, ring, workers, scheduler, one_map, sharded, as_json, progress, **kw):
     """Build an occupancy map from SOURCE: a directory of PCD (or PLY + --poses) scans, a single
-    PCD/PLY file, a ROS 2 .mcap file, or an OctoMap .graph file."""
-    from voxtool.api import build_map
+    PCD/PLY file, a ROS 2 .mcap file, or an OctoMap .graph file.
 
+    \b
+    Several SOURCES:
+      voxtool build runs/*/ -o maps/ --workers 4        one map per source (a fleet)
+      voxtool build a.mcap b.mcap -o map.vxm --workers 4 one map of all (scan-timestamp order)
+      voxtool build big.mcap -o map/ --sharded --workers 8  one map, written part by part
+    With --workers or --scheduler the work runs on Dask (docs/distributed.md)."""
+    from voxtool.cluster import wanted
+    from voxtool.errors import ParameterError
+
+    dask = wanted(workers, scheduler)
+    if sample or not sources:
+        sources = (resolve_source(None if not sources else sources[0], sample),)
     options, params, sensor = scan_setup(kw)
     backend, extra = backend_setup(kw)
-    result = build_map(resolve_source(source, sample), options, params, sensor, backend, output, progress, extra,
-                       share, ring)
-    warn_dropped(source or "sample", result)
+    # a trailing slash, an existing directory, or several sources without .vxm: one map per source
+    to_dir = output is not None and not sharded and not one_map and (
+        output.endswith("/") or Path(output).is_dir() or (len(sources) > 1 and Path(output).suffix.lower() != ".vxm"))
+    output = Path(output) if output is not None else None
+    if sharded or one_map or (not to_dir and (dask or len(sources) > 1)):
+        if not dask:
+            raise ParameterError("one map from several sources, or a sharded map, is built by Dask workers: "
+                                 "give --workers N (a local cluster) or --scheduler ADDRESS")
+        if backend != "octree" or share is not None:
+            raise ParameterError(f"a map built by Dask workers uses the octree backend (not '{backend}'), without --share")
+        if sharded and output is None:
+            raise ParameterError("--sharded needs -o DIRECTORY")
+        from voxtool.api import build_one_map
+        from voxtool.cluster import dask_client
+
+        with dask_client(workers, scheduler) as client:
+            result = build_one_map(list(sources), options, params, sensor, client, output, sharded, progress,
+                                   extra.get("shard_depth"))
+        emit(result, as_json, summary_rows(result), written=output)
+        return
+    if to_dir or len(sources) > 1:
+        from voxtool.fleet import output_names, run_fleet
+
+        if output is None:
+            raise ParameterError("several SOURCES build one map each: give -o DIRECTORY for them")
+        output.mkdir(parents=True, exist_ok=True)
+        output_names(list(sources), output, "build")  # name clashes refused before any work
+        job = {"options": options, "params": params, "sensor": sensor, "backend": backend, "backend_options": extra}
+        if dask:
+            from voxtool.cluster import dask_client
+
+            with dask_client(workers, scheduler) as client:
+                report = run_fleet("build", list(sources), job, output, client, progress)
+        else:
+            report = run_fleet("build", list(sources), job, output, None, progress)
+        emit_fleet(report, as_json, lambda r: f"{r['occupied_voxels']:,} occupied voxels, {r['scans']:,} scans")
+        return
+    from voxtool.api import build_map
+
+    if sources[0].suffix.lower() == ".bt":  # an OctoMap map, imported as it is
+        from voxtool.api import export_map
+
+        if output is None:
+            raise ParameterError(f"{sources[0]}: an OctoMap .bt is imported with -o MAP.vxm")
+        emit(export_map(sources[0], output, False, progress), as_json, [], written=output)
+        return
+    result = build_map(sources[0], options, params, sensor, backend, output, progress, extra, share, ring)
+    warn_dropped(sources[0], result)
     emit(result, as_json, summary_rows(result), written=output)

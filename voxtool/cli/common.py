@@ -57,15 +57,44 @@ def emit(data: dict, as_json: bool, rows: list[tuple[str, str]], written=None) -
 
 def warn_dropped(where, figures: dict) -> None:
     """One warning line on stderr for every kind of update a map dropped: never silent."""
-    of = f" of {figures['voxel_updates']:,}" if figures.get("voxel_updates") else ""
-    if figures.get("dropped_updates"):
-        click.echo(f"voxtool: warning: {where}: the tiny map's pool of {figures['pool_blocks']:,} blocks was full: "
-                   f"{figures['dropped_updates']:,}{of} voxel updates were dropped; give --pool-blocks a larger budget, "
-                   "or leave it out to size the pool from the map", err=True)
-    if figures.get("outside_map_updates"):
-        click.echo(f"voxtool: warning: {where}: {figures['outside_map_updates']:,}{of} voxel updates fell outside the "
-                   f"tiny map's {figures['map_size_m']:g} m extent and were dropped; give --map-size a larger extent",
-                   err=True)
+    from voxtool.api import dropped_warnings
+
+    for line in dropped_warnings(where, figures):
+        click.echo(f"voxtool: warning: {line}", err=True)
+
+
+def cluster_options(func):
+    """--workers / --scheduler: run on Dask (voxtool.cluster); neither: no Dask at all."""
+    func = click.option("--scheduler", metavar="ADDRESS",
+                        help="Run on an existing Dask cluster (e.g. tcp://10.0.0.5:8786); workers read sources by path, "
+                             "so they must see the same file system.")(func)
+    return click.option("--workers", type=int, default=None,
+                        help="Run on a local Dask cluster of N worker processes, started for this command.")(func)
+
+
+def fleet_rows(report: dict, value) -> list[tuple[str, str]]:
+    """A fleet's rows as printed: per source its figure (value(result)) or its error, then totals."""
+    rows = []
+    for r in report["rows"]:
+        where = r["source"] + (f" -> {r['output']}" if r.get("output") else "")
+        rows.append((where, value(r["result"]) if r["exit_code"] == 0 else f"FAILED (exit {r['exit_code']}): {r['error']}"))
+    t = report["totals"]
+    rows.append(("total", f"{t['ok']} of {t['sources']} sources ok in {t['wall_s']:.1f} s"))
+    return rows
+
+
+def emit_fleet(report: dict, as_json: bool, value) -> None:
+    """Print a fleet's report, its dropped-data warnings, and exit with the first failure's code."""
+    from voxtool.fleet import first_failure
+
+    for r in report["rows"]:
+        for line in r.get("warnings", []):
+            click.echo(f"voxtool: warning: {line}", err=True)
+    written = [r["output"] for r in report["rows"] if r.get("output")]
+    emit(report, as_json, fleet_rows(report, value), written=written or None)
+    err = first_failure(report)
+    if err is not None:
+        raise err
 
 
 def summary_rows(stats: dict) -> list[tuple[str, str]]:
@@ -76,7 +105,8 @@ def summary_rows(stats: dict) -> list[tuple[str, str]]:
         ("resolution", f"{stats.get('resolution')} m"),
         ("occupied voxels", f"{stats['occupied_voxels']:,}"),
         ("free voxels", f"{stats['free_voxels']:,}"),
-        ("nodes (leaf/inner)", f"{stats['leaf_nodes']:,} / {stats['inner_nodes']:,} in the .bt (max-likelihood) tree"),
+        ("nodes (leaf/inner)", f"{stats['leaf_nodes']:,} / {stats['inner_nodes']:,} in the .bt (max-likelihood) tree"
+         if stats.get("leaf_nodes") is not None else "not counted part by part (the tree spans the parts)"),
     ]
     if stats.get("octree_leaf_nodes") is not None:
         rows.append(("", f"{stats['octree_leaf_nodes']:,} / {stats['octree_inner_nodes']:,} in the log-odds octree"))
@@ -86,7 +116,11 @@ def summary_rows(stats: dict) -> list[tuple[str, str]]:
     rows.append(("occupied bbox", f"{bbox['min']} .. {bbox['max']}" if bbox else "(empty)"))
     if "scans" in stats:
         rows += [("scans", f"{stats['scans']:,}"), ("points", f"{stats['points']:,} ({stats['points_dropped']:,} dropped)")]
-    if "timings_s" in stats:
+    if "workers" in stats:
+        rows.append(("dask", f"{stats['workers']} workers, {stats['partitions']} partitions, {stats['batches']} batches "
+                             f"of scans: {stats['timings_s']['total']:.3f} s (ray casting summed over tasks "
+                             f"{stats['timings_s']['raycast_task_sum']:.3f} s)"))
+    elif "timings_s" in stats:
         t = stats["timings_s"]
         lat = stats["scan_latency_ms"]
         threads = f" on {stats['threads']} thread{'s' if stats.get('threads', 1) > 1 else ''}" if "threads" in stats else ""

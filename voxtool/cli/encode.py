@@ -9,7 +9,9 @@ import click
 from voxtool.cli.common import (
     backend_options,
     backend_setup,
+    cluster_options,
     emit,
+    emit_fleet,
     handle_errors,
     resolve_source,
     scan_options,
@@ -19,9 +21,10 @@ from voxtool.cli.common import (
 
 
 @click.command()
-@click.argument("source", required=False, type=click.Path(path_type=Path))
+@click.argument("sources", nargs=-1, type=click.Path(path_type=Path))
 @click.option("--sample", is_flag=True, help="Use the shipped sample as SOURCE.")
-@click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Packet log to write (.mcap).")
+@click.option("-o", "--output", required=True, type=click.Path(), help="Packet log to write (.mcap); a directory (several SOURCES, or a name ending in /): one log per "
+                   "source, named after it.")
 @click.option("--robot", default="r1", show_default=True, help="Robot id (1..16 bytes) stamped on every packet.")
 @backend_options
 @scan_options
@@ -38,30 +41,40 @@ from voxtool.cli.common import (
 @click.option("--rate", "rate_hz", default=10.0, show_default=True, type=float, help="Scan rate (Hz) assumed when the source has no stamps.")
 @click.option("--json", "as_json", is_flag=True, help="Print the encoding report as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
+@cluster_options
 @handle_errors
-def encode(source, sample, output, robot, scheme, codec, max_changes, max_interval, ring, keyframe_every,
-           rate_hz, as_json, progress, **kw):
+def encode(sources, sample, output, robot, scheme, codec, max_changes, max_interval, ring, keyframe_every,
+           rate_hz, as_json, progress, workers, scheduler, **kw):
     """Map SOURCE and write the voxel state changes as packets to an MCAP packet log."""
-    from voxtool.codec.encode import EncodeOptions, encode_stream
-    from voxtool.errors import ParameterError
-    from voxtool.maps import make_backend
-    from voxtool.sources import open_source
+    from voxtool.api import encode_log
+    from voxtool.cluster import wanted
+    from voxtool.codec.encode import EncodeOptions
 
-    if output.suffix.lower() != ".mcap":
-        raise ParameterError(f"{output}: packet logs are written as .mcap")
-    from voxtool.atomic import check_writable
-
-    check_writable(output)
+    dask = wanted(workers, scheduler)
+    fleet = len(sources) > 1 or output.endswith("/") or Path(output).is_dir() or dask
+    output = Path(output)
     options, params, sensor = scan_setup(kw)
     backend, extra = backend_setup(kw)
-    src = resolve_source(source, sample)
     if scheme is None:
         scheme = "nested" if codec == "cm" else "hilbert"
     opts = EncodeOptions(robot, scheme, codec, max_changes, max_interval, ring, keyframe_every, rate_hz)
-    mapper = make_backend(backend, params, sensor, **extra)
-    stream = open_source(src, options)
-    info = {"source": str(src), "backend": backend, "backend_params": {k: v for k, v in extra.items() if k != "schedule"},
-            "map_params": params.to_dict(), "sensor_model": sensor.to_dict()}
-    result = encode_stream(stream, mapper, output, opts, info, progress)
-    warn_dropped(src, mapper.extra_stats())
+    if fleet and not sample:
+        from voxtool.fleet import output_names, run_fleet
+
+        output.mkdir(parents=True, exist_ok=True)
+        output_names(list(sources), output, "encode")  # name clashes refused before any work
+        job = {"options": options, "params": params, "sensor": sensor, "backend": backend, "backend_options": extra,
+               "encode": opts}
+        if dask:
+            from voxtool.cluster import dask_client
+
+            with dask_client(workers, scheduler) as client:
+                report = run_fleet("encode", list(sources), job, output, client, progress)
+        else:
+            report = run_fleet("encode", list(sources), job, output, None, progress)
+        emit_fleet(report, as_json, lambda r: f"{r['bytes']:,} bytes in {r['packets']:,} packets")
+        return
+    src = resolve_source(sources[0] if sources else None, sample)
+    result = encode_log(src, output, options, params, sensor, backend, extra, opts, progress)
+    warn_dropped(src, result)
     emit(result, as_json, [(k, str(v)) for k, v in result.items()], written=output)

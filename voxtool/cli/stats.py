@@ -6,11 +6,11 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors, summary_rows
+from voxtool.cli.common import cluster_options, emit, emit_fleet, handle_errors, summary_rows
 
 
 @click.command()
-@click.argument("map_file", type=click.Path(path_type=Path))
+@click.argument("map_files", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print as JSON.")
 @click.option("--compare", "baseline", type=click.Path(path_type=Path),
               help="Baseline JSON (from `stats --json`): print every compared figure and exit 6 when one changes "
@@ -19,16 +19,36 @@ from voxtool.cli.common import emit, handle_errors, summary_rows
 @click.option("--tolerance", default=0.0, show_default=True, type=float,
               help="Relative change allowed by --compare (0.01: 1 %).")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
+@cluster_options
 @handle_errors
-def stats(map_file, as_json, baseline, tolerance, progress):
-    """Statistics of a map snapshot (.vxm), an OctoMap .bt file, or a packet log (.mcap)."""
-    from voxtool.api import map_stats
+def stats(map_files, as_json, baseline, tolerance, progress, workers, scheduler):
+    """Statistics of a map snapshot (.vxm), a sharded map (a directory), an OctoMap .bt file, or a
+    packet log (.mcap). Several files: one row each and the totals (with --workers or --scheduler,
+    one Dask task each)."""
+    from voxtool.api import any_stats
+    from voxtool.cluster import wanted
     from voxtool.stats import COMPARED, LOG_COMPARED, compare, comparison_rows, number, regression_error
 
-    if map_file.suffix.lower() == ".mcap":
-        from voxtool.codec.logstats import log_stats
+    dask = wanted(workers, scheduler)
+    if len(map_files) > 1 or dask:
+        from voxtool.errors import ParameterError
+        from voxtool.fleet import run_fleet
 
-        result = log_stats(map_file, progress)
+        if baseline is not None:
+            raise ParameterError("--compare checks one file against its baseline; give one file")
+        if dask:
+            from voxtool.cluster import dask_client
+
+            with dask_client(workers, scheduler) as client:
+                report = run_fleet("stats", list(map_files), {}, None, client, progress)
+        else:
+            report = run_fleet("stats", list(map_files), {}, None, None, progress)
+        emit_fleet(report, as_json, lambda r: f"{number(r['bytes'])} bytes in {number(r['packets'])} packets"
+                   if "packets" in r else f"{number(r['occupied_voxels'])} occupied voxels")
+        return
+    map_file = map_files[0]
+    result = any_stats(map_file, progress)
+    if map_file.suffix.lower() == ".mcap":
         figures = LOG_COMPARED
         rows = [("packets", number(result["packets"])), ("bytes", number(result["bytes"])),
                 ("total bandwidth", f"avg {number(result['total']['avg_Bps'])} B/s, max {number(result['total']['max_Bps'])} B/s")]
@@ -38,7 +58,6 @@ def stats(map_file, as_json, baseline, tolerance, progress):
                                            f"x{number(r['compression_ratio'])} compression, "
                                            f"{number(r['ratio_to_raw_sensor'] or 0)} of raw sensor B/s"))
     else:
-        result = map_stats(map_file, progress)
         figures = COMPARED
         rows = summary_rows(result)
     report = None

@@ -162,10 +162,29 @@ def write_bt_export(path: Path, leaves: Leaves, resolution: float, threshold_log
     return {"format": "bt", "leaf_nodes": leaf_nodes, "inner_nodes": inner_nodes}
 
 
+def write_vxm(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> dict:
+    """A snapshot of the leaves (an OctoMap .bt imported: occupied leaves at the upper clamp,
+    free ones at the lower, as OctoMap reads a .bt), with the default sensor model."""
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.io.mapfile import save_map
+    from voxtool.maps.octree import OctreeMap
+
+    if include_free:
+        raise ParameterError(f"{path}: a snapshot always holds free and occupied voxels; --free is for .ply/.pcd")
+    sensor = SensorModel()
+    if not np.isclose(threshold_log, sensor.threshold_log):
+        raise ParameterError(f"{path}: a map with threshold log-odds {threshold_log:g} is already a snapshot")
+    backend = OctreeMap(MapParams(resolution=resolution), sensor)
+    backend.load_state({"leaf_codes": leaves.codes, "leaf_depths": leaves.depths, "leaf_values": leaves.values})
+    save_map(path, backend, {"source": "OctoMap .bt (imported)"})
+    return {"format": "vxm", "leaves": len(leaves), "occupied_voxels": occupied_count(leaves, threshold_log)}
+
+
 # each writes the file and returns what it wrote (format, counts)
 EXPORTERS: dict[str, Callable[[Path, Leaves, float, float, bool], dict]] = {
     ".bt": write_bt_export,
     ".ply": write_ply,
     ".pcd": write_pcd,
     ".png": write_png,
+    ".vxm": write_vxm,
 }

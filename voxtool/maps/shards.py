@@ -118,6 +118,33 @@ class ShardedOctree:
         self.coarse = _EMPTY  # leaves coarser than a brick (a loaded map's), Morton order
         self._derived: _Derived | None = None
 
+    # -- moving between processes -----------------------------------------------------------
+    def bricks(self) -> tuple[np.ndarray, np.ndarray]:
+        """(brick codes, their 512 log-odds each) in slot order: the map's whole content with
+        `coarse` (what a Dask worker sends, or what put_bricks takes)."""
+        n = self.n_bricks
+        return self.brick_code[:n].copy(), self.arena.vals[: n * K.BRICK].reshape(n, K.BRICK).copy()
+
+    def put_bricks(self, codes: np.ndarray, values: np.ndarray) -> None:
+        """Add bricks this map does not hold yet (another part of the same map)."""
+        if codes.shape[0] == 0:
+            return
+        self._derived = None
+        order = np.argsort(codes, kind="stable")
+        slots, fresh, _ = self._slots_for(codes[order])
+        if not fresh.all():
+            raise ValueError("put_bricks: a brick is already present")
+        self.arena.vals.reshape(-1, K.BRICK)[slots] = values[order]
+
+    def __getstate__(self) -> dict:
+        codes, values = self.bricks()
+        return {"depth": self.depth, "threads": self.threads, "codes": codes, "values": values, "coarse": self.coarse}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["depth"], state["threads"])
+        self.coarse = state["coarse"]
+        self.put_bricks(state["codes"], state["values"])
+
     # -- bricks ------------------------------------------------------------------------------
     def _rows_for(self, prefixes: np.ndarray) -> np.ndarray:
         """Directory rows of the shards with these (sorted, distinct) prefixes, made where missing."""

@@ -1,0 +1,82 @@
+"""`voxtool query`: the state of a map at points."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from voxtool.cli.common import emit, handle_errors
+
+
+def read_points(path: Path):
+    """N x 3 coordinates from a .csv (x,y,z per line; a header line is skipped) or a .pcd."""
+    import numpy as np
+
+    from voxtool.errors import SourceError
+
+    if path.suffix.lower() == ".pcd":
+        from voxtool.sources.pcd import read_pcd
+
+        return read_pcd(path).xyz.astype(np.float64)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise SourceError(f"{path}: cannot read: {err.strerror}") from err
+    lines = [ln for ln in text.splitlines() if ln.strip()]
+    if lines and lines[0].lstrip()[0] not in "+-.0123456789":
+        lines = lines[1:]  # a header
+    try:
+        pts = np.array([[float(v) for v in ln.replace(",", " ").split()[:3]] for ln in lines], dtype=np.float64)
+    except ValueError as err:
+        raise SourceError(f"{path}: not x,y,z numbers ({err})") from None
+    if pts.size and pts.shape[1] != 3:
+        raise SourceError(f"{path}: every line needs x, y and z")
+    return pts.reshape(-1, 3)
+
+
+@click.command()
+@click.argument("map_file", type=click.Path(path_type=Path))
+@click.argument("xyz", nargs=3, type=float, required=False)
+@click.option("--points", type=click.Path(path_type=Path), help="Query every point of a .csv (x,y,z) or .pcd file.")
+@click.option("-o", "--output", type=click.Path(path_type=Path),
+              help="--points: write the answers as CSV (x,y,z,state,probability,depth) instead of a summary.")
+@click.option("--json", "as_json", is_flag=True, help="Print as JSON (per point for X Y Z; counts for --points).")
+@handle_errors
+def query(map_file, xyz, points, output, as_json):
+    """Is a point occupied? The state (occupied / free / unknown), the occupancy probability and
+    the depth of the leaf that answered (16: a single voxel; less: a pruned, larger leaf), at X Y Z
+    (metres, map frame) or at every point of --points.
+
+    \\b
+      voxtool query map.vxm 1.0 2.5 0.3
+      voxtool query map.vxm --json -- -4.2 1.0 0.3   (-- before negative coordinates)
+      voxtool query map.vxm --points pts.csv -o answers.csv"""
+    import numpy as np
+
+    from voxtool.errors import ParameterError
+    from voxtool.voxelmap import STATE_NAMES, load
+
+    if (points is None) == (not xyz):
+        raise ParameterError("give X Y Z or --points FILE")
+    pts = np.array([xyz], dtype=np.float64) if xyz else read_points(points)
+    vmap = load(map_file)
+    answer = vmap.query(pts)
+    if xyz:
+        state = STATE_NAMES[int(answer["state"][0])]
+        prob = float(answer["probability"][0])
+        result = {"x": xyz[0], "y": xyz[1], "z": xyz[2], "state": state,
+                  "probability": None if np.isnan(prob) else round(prob, 6), "depth": int(answer["depth"][0])}
+        emit(result, as_json, [("state", state), ("probability", "-" if np.isnan(prob) else f"{prob:.4f}"),
+                               ("leaf depth", str(result["depth"]))])
+        return
+    counts = np.bincount(answer["state"], minlength=3)
+    result = {"points": int(pts.shape[0]), **{name: int(c) for name, c in zip(STATE_NAMES, counts)}}
+    if output is not None:
+        from voxtool.atomic import atomic_writer
+
+        table = np.column_stack([pts, answer["state"], answer["probability"], answer["depth"]])
+        with atomic_writer(output) as f:
+            f.write(b"x,y,z,state,probability,depth\n")
+            np.savetxt(f, table, fmt=["%.6f", "%.6f", "%.6f", "%d", "%.6f", "%d"], delimiter=",")
+    emit(result, as_json, [(k, f"{v:,}") for k, v in result.items()], written=output)

@@ -1,0 +1,80 @@
+"""Dask clusters: a LocalCluster for one command (`--workers N`) or an existing scheduler
+(`--scheduler ADDRESS`). Imported only when one of the two is given, so commands without them
+pay nothing for Dask."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from voxtool.errors import ParameterError, VoxtoolError
+
+MAX_WORKERS = 1024
+
+
+class ClusterError(VoxtoolError):
+    exit_code = 1
+
+
+def wanted(workers: int | None, scheduler: str | None) -> bool:
+    """Whether the user asked for Dask; both at once is a usage error."""
+    if workers is not None and scheduler is not None:
+        raise ParameterError("give --workers (a local cluster) or --scheduler (an existing one), not both")
+    if workers is not None and not 1 <= workers <= MAX_WORKERS:
+        raise ParameterError(f"--workers {workers} must lie in 1..{MAX_WORKERS}")
+    return workers is not None or scheduler is not None
+
+
+@contextmanager
+def dask_client(workers: int | None = None, scheduler: str | None = None, quiet: bool = False) -> Iterator:
+    """A dask.distributed Client; a LocalCluster of `workers` processes (one thread each: voxtool's
+    kernels are the parallel part) is started here and shut down on leaving, Ctrl-C included.
+    The dashboard address goes to stderr."""
+    import logging
+
+    from dask.distributed import Client, LocalCluster
+
+    # Dask logs worker restarts and closing comms at INFO/WARNING; voxtool reports what matters
+    for name in ("distributed", "distributed.nanny", "distributed.scheduler", "distributed.worker"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+    cluster = None
+    try:
+        if scheduler is not None:
+            try:
+                client = Client(scheduler, timeout="10s")
+            except (OSError, TimeoutError) as err:
+                raise ClusterError(f"{scheduler}: cannot reach the Dask scheduler ({err})") from None
+        else:
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=":0", silence_logs=logging.ERROR)
+            client = Client(cluster)
+        if not quiet:
+            where = scheduler or f"local cluster of {workers} worker processes"
+            print(f"voxtool: dask: {where}; dashboard {client.dashboard_link}", file=sys.stderr, flush=True)
+        try:
+            yield client
+        finally:
+            client.close()
+    finally:
+        if cluster is not None:
+            cluster.close()
+
+
+def gather_all(client, futures: list, desc: str, progress: bool | None) -> list:
+    """Results of `futures` in their order, with a tqdm bar over finished tasks; the first
+    failed task's error is raised (the rest are cancelled)."""
+    from dask.distributed import as_completed
+    from distributed.scheduler import KilledWorker
+
+    from voxtool.progress import bar
+
+    try:
+        with bar(len(futures), desc, progress, "task") as b:
+            for _ in as_completed(futures):
+                b.update(1)
+        return client.gather(futures)
+    except KilledWorker as err:
+        # Dask recomputes what a lost worker held; a task that keeps killing its workers ends here
+        raise ClusterError(f"Dask workers kept dying while running {desc} task {err.task!r} (last: {err.last_worker.address}); "
+                           "nothing was written") from None
