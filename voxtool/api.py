@@ -233,7 +233,7 @@ def exporter(output: Path):
 
 
 def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False,
-               progress: bool | None = False) -> dict:
+               progress: bool | None = False, ros2_only: bool = False) -> dict:
     """Write a map (.vxm or .bt) as .bt, .ply, .pcd or .png; returns what was written."""
     from voxtool.atomic import check_writable
     from voxtool.progress import bar
@@ -246,7 +246,10 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
     with bar(2, f"export {output.suffix}", progress, "step") as steps:
         leaves, res, thr, _ = load_leaves(path)
         steps.update(1)
-        written = writer(output, leaves, res, thr, include_free)
+        if ros2_only and output.suffix.lower() != ".mcap":
+            raise ParameterError(f"{output}: --ros2-only is for .mcap exports")
+        extra = {"ros2_only": True} if ros2_only else {}
+        written = writer(output, leaves, res, thr, include_free, **extra)
         steps.update(1)
     return written
 

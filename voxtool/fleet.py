@@ -77,6 +77,19 @@ def run_fleet(command: str, sources: list[Path], job: dict, out_dir: Path | None
     return {"command": command, "rows": rows, "totals": totals}
 
 
+def run_fleet_on(command: str, sources: list[Path], job: dict, out_dir: Path | None, workers: int | None,
+                 scheduler: str | None, progress: bool | None = None) -> dict:
+    """run_fleet on a Dask cluster when --workers or --scheduler asks for one, else here."""
+    from voxtool.cluster import wanted
+
+    if not wanted(workers, scheduler):
+        return run_fleet(command, sources, job, out_dir, None, progress)
+    from voxtool.cluster import dask_client
+
+    with dask_client(workers, scheduler) as client:
+        return run_fleet(command, sources, job, out_dir, client, progress)
+
+
 def first_failure(report: dict) -> VoxtoolError | None:
     """The error the command exits with: the first failed source's (its code), naming how many failed."""
     failed = [r for r in report["rows"] if r["exit_code"]]

@@ -23,7 +23,8 @@ from voxtool.cli.common import (
 @click.command()
 @click.argument("sources", nargs=-1, type=click.Path(path_type=Path))
 @click.option("--sample", is_flag=True, help="Use the shipped sample as SOURCE.")
-@click.option("-o", "--output", required=True, type=click.Path(), help="Packet log to write (.mcap); a directory (several SOURCES, or a name ending in /): one log per "
+@click.option("-o", "--output", required=True, type=click.Path(),
+              help="Packet log to write (.mcap); a directory (several SOURCES, or a name ending in /): one log per "
                    "source, named after it.")
 @click.option("--robot", default="r1", show_default=True, help="Robot id (1..16 bytes) stamped on every packet.")
 @backend_options
@@ -59,19 +60,13 @@ def encode(sources, sample, output, robot, scheme, codec, max_changes, max_inter
         scheme = "nested" if codec == "cm" else "hilbert"
     opts = EncodeOptions(robot, scheme, codec, max_changes, max_interval, ring, keyframe_every, rate_hz)
     if fleet and not sample:
-        from voxtool.fleet import output_names, run_fleet
+        from voxtool.fleet import output_names, run_fleet_on
 
         output.mkdir(parents=True, exist_ok=True)
         output_names(list(sources), output, "encode")  # name clashes refused before any work
         job = {"options": options, "params": params, "sensor": sensor, "backend": backend, "backend_options": extra,
                "encode": opts}
-        if dask:
-            from voxtool.cluster import dask_client
-
-            with dask_client(workers, scheduler) as client:
-                report = run_fleet("encode", list(sources), job, output, client, progress)
-        else:
-            report = run_fleet("encode", list(sources), job, output, None, progress)
+        report = run_fleet_on("encode", list(sources), job, output, workers, scheduler, progress)
         emit_fleet(report, as_json, lambda r: f"{r['bytes']:,} bytes in {r['packets']:,} packets")
         return
     src = resolve_source(sources[0] if sources else None, sample)

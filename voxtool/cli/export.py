@@ -12,18 +12,23 @@ from voxtool.cli.common import emit, handle_errors
 @click.command()
 @click.argument("map_file", type=click.Path(path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
-              help="Output file; its suffix picks the format: .bt, .ply, .pcd or .png.")
+              help="Output file; its suffix picks the format: .bt, .ply, .pcd, .png, .mcap (Foxglove scene + ROS 2 "
+                   "octomap_msgs/Octomap) or .vxm (an OctoMap .bt imported).")
 @click.option("--free", "include_free", is_flag=True,
               help="Also write free voxels (.ply/.pcd, coloured; a .bt and a picture always hold them).")
+@click.option("--ros2-only", is_flag=True,
+              help=".mcap: only the ROS 2 /octomap_binary topic (rosbags cannot open a file that also holds the "
+                   "Foxglove protobuf scene).")
 @click.option("--json", "as_json", is_flag=True, help="Print what was written as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def export(map_file, output, include_free, as_json, progress):
+def export(map_file, output, include_free, ros2_only, as_json, progress):
     """Export a map snapshot (.vxm) or an OctoMap .bt: .bt (OctoMap binary, the max-likelihood
-    tree), .ply/.pcd (voxel centres), .png (top view)."""
+    tree), .ply/.pcd (voxel centres), .png (top view), .mcap (for Foxglove, RViz and rosbags), or
+    import an OctoMap .bt as a snapshot (.vxm)."""
     from voxtool.api import export_map
 
-    written = export_map(map_file, output, include_free, progress)
+    written = export_map(map_file, output, include_free, progress, ros2_only)
     rows = [(key.replace("_", " "), f"{value:,}" if isinstance(value, int) else str(value))
             for key, value in written.items() if value is not None]
     emit(written, as_json, rows, written=output)

@@ -32,17 +32,11 @@ def stats(map_files, as_json, baseline, tolerance, progress, workers, scheduler)
     dask = wanted(workers, scheduler)
     if len(map_files) > 1 or dask:
         from voxtool.errors import ParameterError
-        from voxtool.fleet import run_fleet
+        from voxtool.fleet import run_fleet_on
 
         if baseline is not None:
             raise ParameterError("--compare checks one file against its baseline; give one file")
-        if dask:
-            from voxtool.cluster import dask_client
-
-            with dask_client(workers, scheduler) as client:
-                report = run_fleet("stats", list(map_files), {}, None, client, progress)
-        else:
-            report = run_fleet("stats", list(map_files), {}, None, None, progress)
+        report = run_fleet_on("stats", list(map_files), {}, None, workers, scheduler, progress)
         emit_fleet(report, as_json, lambda r: f"{number(r['bytes'])} bytes in {number(r['packets'])} packets"
                    if "packets" in r else f"{number(r['occupied_voxels'])} occupied voxels")
         return

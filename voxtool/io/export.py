@@ -180,6 +180,13 @@ def write_vxm(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
     return {"format": "vxm", "leaves": len(leaves), "occupied_voxels": occupied_count(leaves, threshold_log)}
 
 
+def write_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
+               ros2_only: bool = False) -> dict:
+    from voxtool.io.viewer_mcap import write_map_mcap
+
+    return write_map_mcap(path, leaves, resolution, threshold_log, include_free, ros2_only)
+
+
 # each writes the file and returns what it wrote (format, counts)
 EXPORTERS: dict[str, Callable[[Path, Leaves, float, float, bool], dict]] = {
     ".bt": write_bt_export,
@@ -187,4 +194,5 @@ EXPORTERS: dict[str, Callable[[Path, Leaves, float, float, bool], dict]] = {
     ".pcd": write_pcd,
     ".png": write_png,
     ".vxm": write_vxm,
+    ".mcap": write_mcap,
 }
