@@ -26,6 +26,9 @@ def backend_stats(backend: MapBackend) -> dict:
     return out
 
 
+RECORDED_COUNTS = ("scans", "points", "points_dropped", "raw_bytes")  # a build's counts kept in its snapshot
+
+
 def build_map(source: str | os.PathLike, options: SourceOptions, params: MapParams, sensor: SensorModel,
               backend_name: str = "octree", output: str | os.PathLike | None = None,
               progress: bool | None = None, backend_options: dict | None = None,
@@ -67,7 +70,7 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
         result["shared_packets"] = writer.seq
     if output is not None:
         info = {"source": str(source), "source_kind": stream.kind, "source_options": options.__dict__,
-                **{k: result[k] for k in ("scans", "points", "points_dropped", "raw_bytes")}}
+                **{k: result[k] for k in RECORDED_COUNTS}}
         save_map(output, backend, info)
     return result
 
@@ -150,7 +153,7 @@ def build_one_map(sources: list, options: SourceOptions, params: MapParams, sens
         if output is not None:
             from voxtool.io.mapfile import save_map
 
-            save_map(output, backend, {**info, **{k: report[k] for k in ("scans", "points", "points_dropped", "raw_bytes")}})
+            save_map(output, backend, {**info, **{k: report[k] for k in RECORDED_COUNTS}})
         return result
     from voxtool.io import sharded as S
 
@@ -158,14 +161,14 @@ def build_one_map(sources: list, options: SourceOptions, params: MapParams, sens
     try:
         entries, report = distributed_build(client, [str(s) for s in sources], options, params, sensor,
                                             shard_depth=depth, progress=progress, sharded_dir=staging, info=info)
-        info.update({k: report[k] for k in ("scans", "points", "points_dropped", "raw_bytes")})
+        info.update({k: report[k] for k in RECORDED_COUNTS})
         header = {"partitions": report["partitions"], "shard_depth": depth, "partition_rule": "fibonacci-hash",
                   "backend": "octree", "map_params": params.to_dict(), "sensor_model": sensor.to_dict(), "info": info}
-        S.finish(staging, output, header, entries)
+        manifest = S.finish(staging, output, header, entries)
     except BaseException:
         S.abandon(staging)
         raise
-    result = S.sharded_stats(output)
+    result = S.combined_stats(entries, manifest)  # the workers' figures of their parts: no second read
     result.update(report)
     return result
 

@@ -53,13 +53,15 @@ def run_one(command: str, source: str, output: str | None, job: dict) -> dict:
 
 
 def run_fleet(command: str, sources: list[Path], job: dict, out_dir: Path | None = None, client=None,
-              progress: bool | None = None) -> dict:
-    """Every source's row and the totals; the CLI exits with the first failed row's code."""
+              progress: bool | None = None, outputs: list[Path] | None = None) -> dict:
+    """Every source's row and the totals; the CLI exits with the first failed row's code.
+    `outputs`: output_names' answer, when the caller has it already."""
     from voxtool.progress import track
 
     t0 = time.perf_counter()
-    outs = output_names(sources, out_dir, command) if out_dir is not None else [None] * len(sources)
-    args = [(command, str(s), str(o) if o is not None else None, job) for s, o in zip(sources, outs)]
+    if outputs is None:
+        outputs = output_names(sources, out_dir, command) if out_dir is not None else [None] * len(sources)
+    args = [(command, str(s), str(o) if o is not None else None, job) for s, o in zip(sources, outputs)]
     if client is None:
         rows = [run_one(*a) for a in track(args, len(args), command, progress, "source")]
     else:
@@ -79,15 +81,20 @@ def run_fleet(command: str, sources: list[Path], job: dict, out_dir: Path | None
 
 def run_fleet_on(command: str, sources: list[Path], job: dict, out_dir: Path | None, workers: int | None,
                  scheduler: str | None, progress: bool | None = None) -> dict:
-    """run_fleet on a Dask cluster when --workers or --scheduler asks for one, else here."""
+    """run_fleet on a Dask cluster when --workers or --scheduler asks for one, else here; the
+    output directory is made, and clashing output names refused, before any cluster starts."""
     from voxtool.cluster import wanted
 
+    outputs = None
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        outputs = output_names(sources, out_dir, command)
     if not wanted(workers, scheduler):
-        return run_fleet(command, sources, job, out_dir, None, progress)
+        return run_fleet(command, sources, job, out_dir, None, progress, outputs)
     from voxtool.cluster import dask_client
 
     with dask_client(workers, scheduler) as client:
-        return run_fleet(command, sources, job, out_dir, client, progress)
+        return run_fleet(command, sources, job, out_dir, client, progress, outputs)
 
 
 def first_failure(report: dict) -> VoxtoolError | None:

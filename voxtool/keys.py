@@ -59,21 +59,28 @@ def key_bounds(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+def keys_inside(points: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """(uint16 keys, inside) of world coordinates, exactly as OctoMap's coordToKey (float64
+    floor); `inside` marks the points within the key range (the keys of the others are 0)."""
+    scaled = np.floor((1.0 / resolution) * np.asarray(points).astype(np.float64)) + TREE_MAX_VAL
+    inside = ((scaled >= 0) & (scaled < KEY_LIMIT)).all(axis=-1)
+    return np.where(inside[..., None], scaled, 0).astype(np.uint16), inside
+
+
 def coords_to_keys(points: np.ndarray, resolution: float, *, what: str = "point") -> np.ndarray:
     """World coordinates -> uint16 keys, exactly as OctoMap's coordToKey (float64 floor).
 
     Raises KeyRangeError naming the first offending point instead of wrapping silently.
     """
     points = np.asarray(points)
-    scaled = np.floor((1.0 / resolution) * points.astype(np.float64)) + TREE_MAX_VAL
-    bad = ~((scaled >= 0) & (scaled < KEY_LIMIT))
-    if bad.any():
-        row = int(np.argwhere(bad.any(axis=1))[0, 0])
+    keys, inside = keys_inside(points, resolution)
+    if not inside.all():
+        row = int(np.argwhere(~inside.reshape(-1))[0, 0])
         raise KeyRangeError(
             f"{what} {row} at {tuple(float(c) for c in points[row])} lies outside the octree key range "
             f"(|coordinate| < {TREE_MAX_VAL * resolution:g} m at resolution {resolution:g})"
         )
-    return scaled.astype(np.uint16)
+    return keys
 
 
 def keys_to_coords(keys: np.ndarray, resolution: float) -> np.ndarray:
@@ -87,6 +94,11 @@ _SPAN_OF_DEPTH = np.left_shift(np.int64(1), 3 * (TREE_DEPTH - np.arange(TREE_DEP
 def leaf_span(depth: np.ndarray) -> np.ndarray:
     """Number of finest-level voxels covered by a leaf at each depth (8^(16-depth), 0..16)."""
     return _SPAN_OF_DEPTH[np.asarray(depth)]
+
+
+def leaf_edge(depth: np.ndarray) -> np.ndarray:
+    """Finest-level voxels along each edge of a leaf at each depth (2^(16-depth))."""
+    return np.int64(1) << (TREE_DEPTH - np.asarray(depth, dtype=np.int64))
 
 
 def expand_leaves(codes: np.ndarray, depths: np.ndarray) -> np.ndarray:

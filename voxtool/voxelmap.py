@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from voxtool.keys import KEY_LIMIT, TREE_MAX_VAL, morton_encode
+from voxtool.keys import keys_inside, morton_encode
 from voxtool.maps.base import Leaves
 
 UNKNOWN, FREE, OCCUPIED = 0, 1, 2
@@ -37,9 +37,7 @@ class VoxelMap:
         pts = np.atleast_2d(np.asarray(xyz, dtype=np.float64))
         if pts.shape[-1] != 3:
             raise ValueError(f"points must be N x 3 coordinates, not shape {pts.shape}")
-        scaled = np.floor((1.0 / self.resolution) * pts) + TREE_MAX_VAL  # as keys.coords_to_keys
-        inside = ((scaled >= 0) & (scaled < KEY_LIMIT)).all(axis=1) & np.isfinite(pts).all(axis=1)
-        keys = np.where(inside[:, None], scaled, 0).astype(np.uint16)
+        keys, inside = keys_inside(pts, self.resolution)  # NaN compares false: outside
         return morton_encode(keys), inside
 
     def query(self, xyz) -> dict[str, np.ndarray]:

@@ -60,10 +60,8 @@ def encode(sources, sample, output, robot, scheme, codec, max_changes, max_inter
         scheme = "nested" if codec == "cm" else "hilbert"
     opts = EncodeOptions(robot, scheme, codec, max_changes, max_interval, ring, keyframe_every, rate_hz)
     if fleet and not sample:
-        from voxtool.fleet import output_names, run_fleet_on
+        from voxtool.fleet import run_fleet_on
 
-        output.mkdir(parents=True, exist_ok=True)
-        output_names(list(sources), output, "encode")  # name clashes refused before any work
         job = {"options": options, "params": params, "sensor": sensor, "backend": backend, "backend_options": extra,
                "encode": opts}
         report = run_fleet_on("encode", list(sources), job, output, workers, scheduler, progress)

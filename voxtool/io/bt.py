@@ -86,8 +86,9 @@ def bt_bytes(leaves: Leaves, resolution: float, threshold_log: float) -> bytes:
     return _bt(leaves, resolution, threshold_log)[0]
 
 
-def _bt(leaves: Leaves, resolution: float, threshold_log: float) -> tuple[bytes, int, int]:
-    """(.bt bytes, leaf nodes, inner nodes) of leaves: max-likelihood, fully pruned."""
+def tree_stream(leaves: Leaves, threshold_log: float) -> tuple[bytes, int, int]:
+    """(OctoMap's binary tree stream, leaf nodes, inner nodes) of leaves: max-likelihood, fully
+    pruned; what follows a .bt header, and what octomap_msgs/Octomap carries in `data`."""
     from voxtool.kernels.bt import serialize_bt
     from voxtool.maps.tree import max_likelihood
 
@@ -96,11 +97,17 @@ def _bt(leaves: Leaves, resolution: float, threshold_log: float) -> tuple[bytes,
     need = serialize_bt(tree.codes, tree.depths, occupied, np.zeros(0, np.uint8))
     data = np.zeros(need, dtype=np.uint8)
     serialize_bt(tree.codes, tree.depths, occupied, data)
-    size = len(tree) + need // 2  # leaves + inner nodes (one 16-bit word each)
+    return data.tobytes(), len(tree), need // 2  # one 16-bit word per inner node
+
+
+def _bt(leaves: Leaves, resolution: float, threshold_log: float) -> tuple[bytes, int, int]:
+    """(.bt bytes, leaf nodes, inner nodes) of leaves: max-likelihood, fully pruned."""
+    data, leaf_nodes, inner_nodes = tree_stream(leaves, threshold_log)
     header = (
-        f"{HEADER.decode()}\n# (written by voxtool)\n#\nid OcTree\nsize {size}\nres {resolution:.10g}\ndata\n"
+        f"{HEADER.decode()}\n# (written by voxtool)\n#\nid OcTree\nsize {leaf_nodes + inner_nodes}\n"
+        f"res {resolution:.10g}\ndata\n"
     ).encode()
-    return header + data.tobytes(), len(tree), need // 2
+    return header + data, leaf_nodes, inner_nodes
 
 
 def write_bt(path: str | Path, leaves: Leaves, resolution: float, threshold_log: float) -> tuple[int, int]:

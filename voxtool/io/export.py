@@ -11,7 +11,7 @@ import numpy as np
 
 from voxtool.atomic import atomic_writer
 from voxtool.errors import ParameterError
-from voxtool.keys import expand_leaves, keys_to_coords, leaf_span, morton_decode
+from voxtool.keys import expand_leaves, keys_to_coords, leaf_edge, leaf_span, morton_decode
 from voxtool.maps.base import Leaves
 
 MAX_EXPORT_VOXELS = 200_000_000
@@ -93,7 +93,7 @@ def topdown_image(leaves: Leaves, resolution: float, threshold_log: float, max_s
     if len(leaves) == 0:
         return np.zeros((1, 1, 3), dtype=np.uint8) + np.array(UNKNOWN_RGB, np.uint8)
     spans = leaf_span(leaves.depths)
-    side = np.round(np.cbrt(spans)).astype(np.int64)  # voxels per edge of each leaf
+    side = leaf_edge(leaves.depths)
     lo = morton_decode(leaves.codes).astype(np.int64)
     hi = morton_decode(leaves.codes + spans - 1).astype(np.int64)
     kmin, kmax = lo.min(axis=0), hi.max(axis=0)

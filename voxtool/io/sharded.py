@@ -75,9 +75,9 @@ def write_part(part, staging: str, p: int, params, info: dict | None = None) -> 
     return entry
 
 
-def finish(staging: Path, target: str | os.PathLike, header: dict, parts: list[dict]) -> None:
+def finish(staging: Path, target: str | os.PathLike, header: dict, parts: list[dict]) -> dict:
     """Write the manifest (last), then put the directory in place of `target` (an older sharded
-    map there is replaced only now)."""
+    map there is replaced only now); returns the manifest."""
     target = Path(target)
     manifest = {"format": FORMAT, "version": VERSION, **header, "parts": parts}
     with atomic_writer(staging / MANIFEST) as f:
@@ -89,6 +89,7 @@ def finish(staging: Path, target: str | os.PathLike, header: dict, parts: list[d
     staging.rename(target)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+    return manifest
 
 
 def abandon(staging: Path) -> None:
@@ -157,24 +158,19 @@ def load_sharded(path: str | os.PathLike):
     return whole
 
 
-def sharded_stats(path: str | os.PathLike, progress: bool | None = False) -> dict:
-    """Statistics of a sharded snapshot, part by part: voxel counts and the bounding box are
-    exact; node counts would need the tree across parts and are left out (None)."""
-    from voxtool.progress import track
-    from voxtool.stats import leaf_stats
-
-    manifest = read_manifest(path)
+def combined_stats(parts: list[dict], manifest: dict) -> dict:
+    """A sharded map's statistics from its parts' (leaf_stats of each, with its `leaves`): voxel
+    counts and the bounding box are exact; node counts would need the tree across parts and
+    are left out (None)."""
     out = {"backend": "octree", "sharded": True, "partitions": manifest["partitions"],
            "resolution": manifest["map_params"]["resolution"], "occupied_voxels": 0, "free_voxels": 0,
            "occupied_bbox": None, "part_leaves_max": 0, "leaf_nodes": None, "inner_nodes": None,
            "octree_leaf_nodes": None, "octree_inner_nodes": None}
     lo = hi = None
-    for _, backend in track(iter_parts(path), len(manifest["parts"]), "stats", progress, "part"):
-        leaves = backend.leaves()
-        part = leaf_stats(leaves, backend.params.resolution, backend.sensor.threshold_log)
+    for part in parts:
         out["occupied_voxels"] += part["occupied_voxels"]
         out["free_voxels"] += part["free_voxels"]
-        out["part_leaves_max"] = max(out["part_leaves_max"], len(leaves))
+        out["part_leaves_max"] = max(out["part_leaves_max"], part["leaves"])
         box = part["occupied_bbox"]
         if box:
             lo = box["min"] if lo is None else [min(a, b) for a, b in zip(lo, box["min"])]
@@ -187,3 +183,18 @@ def sharded_stats(path: str | os.PathLike, progress: bool | None = False) -> dic
             out[key] = info[key]
     out["source"] = info.get("source")
     return out
+
+
+def sharded_stats(path: str | os.PathLike, progress: bool | None = False) -> dict:
+    """Statistics of a sharded snapshot, read part by part (each part's figures computed from
+    its leaves, not taken from the manifest); see combined_stats."""
+    from voxtool.progress import track
+    from voxtool.stats import leaf_stats
+
+    manifest = read_manifest(path)
+    parts = []
+    for _, backend in track(iter_parts(path), len(manifest["parts"]), "stats", progress, "part"):
+        leaves = backend.leaves()
+        parts.append({**leaf_stats(leaves, backend.params.resolution, backend.sensor.threshold_log),
+                      "leaves": len(leaves)})
+    return combined_stats(parts, manifest)

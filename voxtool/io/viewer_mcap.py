@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from voxtool.atomic import atomic_writer
-from voxtool.keys import TREE_MAX_VAL, leaf_span, morton_decode
+from voxtool.keys import TREE_MAX_VAL, leaf_edge, morton_decode
 from voxtool.maps.base import Leaves
 
 FRAME = "map"
@@ -46,7 +46,7 @@ def height_colours(z: np.ndarray) -> np.ndarray:
 
 def leaf_cubes(leaves: Leaves, resolution: float) -> tuple[np.ndarray, np.ndarray]:
     """(centres N x 3, edge lengths N) of leaves in metres."""
-    span_keys = np.round(np.cbrt(leaf_span(leaves.depths))).astype(np.float64)
+    span_keys = leaf_edge(leaves.depths).astype(np.float64)
     lo = morton_decode(leaves.codes).astype(np.float64) - TREE_MAX_VAL
     return (lo + span_keys[:, None] / 2) * resolution, span_keys * resolution
 
@@ -95,10 +95,9 @@ def scene_update(leaves: Leaves, resolution: float, threshold_log: float, includ
 
 def octomap_message(leaves: Leaves, resolution: float, threshold_log: float, stamp_ns: int = 0) -> dict:
     """The octomap_msgs/msg/Octomap fields of the map (OctoMap's binary tree stream as data)."""
-    from voxtool.io.bt import bt_bytes
+    from voxtool.io.bt import tree_stream
 
-    blob = bt_bytes(leaves, resolution, threshold_log)
-    body = blob[blob.index(b"\ndata\n") + len(b"\ndata\n"):]
+    body = tree_stream(leaves, threshold_log)[0]
     return {"header": {"stamp": {"sec": stamp_ns // 10**9, "nanosec": stamp_ns % 10**9}, "frame_id": FRAME},
             "binary": True, "id": "OcTree", "resolution": float(resolution),
             "data": np.frombuffer(body, dtype=np.int8).tolist()}
