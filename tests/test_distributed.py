@@ -230,3 +230,17 @@ def test_ctrl_c_stops_the_cluster_and_writes_nothing(tmp_path):
     assert not out.exists() and not list(tmp_path.iterdir())
     gone, alive = psutil.wait_procs(children, timeout=20)
     assert not alive, f"orphaned worker processes: {[p.pid for p in alive]}"
+
+
+def test_one_source_encoded_on_workers_is_the_log_named(tmp_path):
+    """`encode SRC -o r1.mcap --workers 1` writes that one log (not a directory of that name),
+    packet for packet the log written without Dask."""
+    from voxtool.codec.log import read_log
+
+    here, there = tmp_path / "here.mcap", tmp_path / "r1.mcap"
+    assert cli("encode", SAMPLE, "-o", here, "--no-progress")[0] == 0
+    code, text, err = cli("encode", SAMPLE, "-o", there, "--workers", "1", "--json", "--no-progress")
+    assert code == 0, err
+    assert there.is_file() and json.loads(text)["rows"][0]["output"] == str(there)
+    packets = [list(read_log(p)[1]) for p in (here, there)]
+    assert len(packets[0]) > 0 and packets[0] == packets[1]

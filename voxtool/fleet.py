@@ -79,13 +79,19 @@ def run_fleet(command: str, sources: list[Path], job: dict, out_dir: Path | None
     return {"command": command, "rows": rows, "totals": totals}
 
 
+def fleet_job(options, params, sensor, backend: str, backend_options: dict, **more) -> dict:
+    """What every task of a build or encode fleet needs (pickled to the workers)."""
+    return {"options": options, "params": params, "sensor": sensor, "backend": backend,
+            "backend_options": backend_options, **more}
+
+
 def run_fleet_on(command: str, sources: list[Path], job: dict, out_dir: Path | None, workers: int | None,
-                 scheduler: str | None, progress: bool | None = None) -> dict:
+                 scheduler: str | None, progress: bool | None = None, outputs: list[Path] | None = None) -> dict:
     """run_fleet on a Dask cluster when --workers or --scheduler asks for one, else here; the
-    output directory is made, and clashing output names refused, before any cluster starts."""
+    output directory is made, and clashing output names refused, before any cluster starts.
+    `outputs` names the outputs instead of `out_dir` (one source written to the file given)."""
     from voxtool.cluster import wanted
 
-    outputs = None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
         outputs = output_names(sources, out_dir, command)

@@ -79,12 +79,12 @@ def build(sources, sample, output, share, ring, workers, scheduler, one_map, sha
         emit(result, as_json, summary_rows(result), written=output)
         return
     if to_dir or len(sources) > 1:
-        from voxtool.fleet import run_fleet_on
+        from voxtool.fleet import fleet_job, run_fleet_on
 
         if output is None:
             raise ParameterError("several SOURCES build one map each: give -o DIRECTORY for them")
-        job = {"options": options, "params": params, "sensor": sensor, "backend": backend, "backend_options": extra}
-        report = run_fleet_on("build", list(sources), job, output, workers, scheduler, progress)
+        report = run_fleet_on("build", list(sources), fleet_job(options, params, sensor, backend, extra), output,
+                              workers, scheduler, progress)
         emit_fleet(report, as_json, lambda r: f"{r['occupied_voxels']:,} occupied voxels, {r['scans']:,} scans")
         return
     from voxtool.api import build_map

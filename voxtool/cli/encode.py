@@ -52,19 +52,20 @@ def encode(sources, sample, output, robot, scheme, codec, max_changes, max_inter
     from voxtool.codec.encode import EncodeOptions
 
     dask = wanted(workers, scheduler)
-    fleet = len(sources) > 1 or output.endswith("/") or Path(output).is_dir() or dask
+    to_dir = len(sources) > 1 or output.endswith("/") or Path(output).is_dir()
     output = Path(output)
     options, params, sensor = scan_setup(kw)
     backend, extra = backend_setup(kw)
     if scheme is None:
         scheme = "nested" if codec == "cm" else "hilbert"
     opts = EncodeOptions(robot, scheme, codec, max_changes, max_interval, ring, keyframe_every, rate_hz)
-    if fleet and not sample:
-        from voxtool.fleet import run_fleet_on
+    if (to_dir or dask) and not sample:
+        from voxtool.fleet import fleet_job, run_fleet_on
 
-        job = {"options": options, "params": params, "sensor": sensor, "backend": backend, "backend_options": extra,
-               "encode": opts}
-        report = run_fleet_on("encode", list(sources), job, output, workers, scheduler, progress)
+        # one source with --workers: one task, writing the log named by -o
+        report = run_fleet_on("encode", list(sources), fleet_job(options, params, sensor, backend, extra, encode=opts),
+                              output if to_dir else None, workers, scheduler, progress,
+                              None if to_dir else [output])
         emit_fleet(report, as_json, lambda r: f"{r['bytes']:,} bytes in {r['packets']:,} packets")
         return
     src = resolve_source(sources[0] if sources else None, sample)
