@@ -122,10 +122,22 @@ def test_sharded_snapshot_round_trips_and_is_checked(client, tmp_path):
     whole = json.loads(cli("stats", tmp_path / "single.vxm", "--json")[1])
     for key in ("occupied_voxels", "free_voxels", "occupied_bbox", "scans", "points"):
         assert streamed[key] == whole[key] == (result[key] if key in result else whole[key])
-    # the same .bt, byte for byte, from the sharded and the single snapshot
+    # node counts of the whole tree, joined from the parts
+    for key in ("leaf_nodes", "inner_nodes", "octree_leaf_nodes", "octree_inner_nodes"):
+        assert streamed[key] == whole[key] > 0, key
+    # exported part by part: the same .bt, byte for byte, and the same voxel centres
     assert cli("export", out, "-o", tmp_path / "a.bt")[0] == 0
     assert cli("export", tmp_path / "single.vxm", "-o", tmp_path / "b.bt")[0] == 0
     assert (tmp_path / "a.bt").read_bytes() == (tmp_path / "b.bt").read_bytes()
+    o3d = pytest.importorskip("open3d")
+    for suffix in (".ply", ".pcd"):
+        clouds = []
+        for src, name in ((out, "a"), (tmp_path / "single.vxm", "b")):
+            assert cli("export", src, "-o", tmp_path / f"{name}{suffix}", "--free")[0] == 0
+            pts = np.asarray(o3d.io.read_point_cloud(str(tmp_path / f"{name}{suffix}")).points)
+            clouds.append(pts[np.lexsort(pts.T)])
+        assert len(clouds[0]) == whole["occupied_voxels"] + whole["free_voxels"]
+        assert np.array_equal(clouds[0], clouds[1]), suffix
     # a part that changed, or a manifest that is missing, is an error naming the file
     part = out / manifest["parts"][1]["file"]
     blob = bytearray(part.read_bytes())

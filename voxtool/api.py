@@ -236,22 +236,35 @@ def exporter(output: Path):
 
 
 def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False,
-               progress: bool | None = False, ros2_only: bool = False) -> dict:
-    """Write a map (.vxm or .bt) as .bt, .ply, .pcd or .png; returns what was written."""
+               progress: bool | None = False, ros2_only: bool = False, view: str | None = None,
+               slice_z: float | None = None) -> dict:
+    """Write a map (.vxm, .bt or a sharded map) as .bt, .ply, .pcd, .png or .mcap; returns what
+    was written. A sharded map is read part by part, except for .mcap and .vxm (whole).
+    `view` and `slice_z` are for pictures (io.picture)."""
     from voxtool.atomic import check_writable
+    from voxtool.io.sharded_export import STREAMED, export_sharded
     from voxtool.progress import bar
 
     output = Path(output)
-    if output.suffix.lower() == ".vxm" and Path(path).suffix.lower() != ".bt":
+    kind = output.suffix.lower()
+    if kind == ".vxm" and Path(path).suffix.lower() != ".bt":
         raise ParameterError(f"{output}: only an OctoMap .bt is imported as a snapshot ({path} is one already)")
     writer = exporter(output)
     check_writable(output)
+    if ros2_only and kind != ".mcap":
+        raise ParameterError(f"{output}: --ros2-only is for .mcap exports")
+    extra = {"ros2_only": True} if ros2_only else {}
+    if view is not None or slice_z is not None:
+        if kind != ".png":
+            raise ParameterError(f"{output}: --view and --slice are for .png pictures")
+        extra = {"view": view or "top", "slice_z": slice_z}
+    if kind == ".png":
+        extra["label"] = Path(path).name
+    if Path(path).is_dir() and kind in STREAMED:
+        return export_sharded(path, output, include_free, progress, **extra)  # part by part
     with bar(2, f"export {output.suffix}", progress, "step") as steps:
         leaves, res, thr, _ = load_leaves(path)
         steps.update(1)
-        if ros2_only and output.suffix.lower() != ".mcap":
-            raise ParameterError(f"{output}: --ros2-only is for .mcap exports")
-        extra = {"ros2_only": True} if ros2_only else {}
         written = writer(output, leaves, res, thr, include_free, **extra)
         steps.update(1)
     return written

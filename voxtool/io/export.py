@@ -1,9 +1,7 @@
-"""Exports of a map: .bt (OctoMap), .ply / .pcd (voxel centres), .png (top-down picture)."""
+"""Exports of a map: .bt (OctoMap), .ply / .pcd (voxel centres), .png (a picture), .mcap, .vxm."""
 
 from __future__ import annotations
 
-import struct
-import zlib
 from collections.abc import Callable
 from pathlib import Path
 
@@ -11,13 +9,12 @@ import numpy as np
 
 from voxtool.atomic import atomic_writer
 from voxtool.errors import ParameterError
-from voxtool.keys import expand_leaves, keys_to_coords, leaf_edge, leaf_span, morton_decode
+from voxtool.keys import expand_leaves, keys_to_coords, leaf_span, morton_decode
 from voxtool.maps.base import Leaves
 
 MAX_EXPORT_VOXELS = 200_000_000
 OCCUPIED_RGB = (220, 60, 40)
 FREE_RGB = (170, 210, 170)
-UNKNOWN_RGB = (40, 40, 48)
 
 
 def voxel_centres(leaves: Leaves, mask: np.ndarray, resolution: float) -> np.ndarray:
@@ -45,111 +42,74 @@ def _cloud_figures(fmt: str, pts: np.ndarray, colors, occupied: int) -> dict:
             "free_voxels": int(len(pts) - occupied) if colors is not None else None}
 
 
-def write_ply(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> dict:
-    pts, colors = _cloud(leaves, resolution, threshold_log, include_free)
+def ply_header(points: int, coloured: bool) -> bytes:
     props = "property float x\nproperty float y\nproperty float z\n"
+    if coloured:
+        props += "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+    return (f"ply\nformat binary_little_endian 1.0\ncomment voxtool voxel centres\nelement vertex {points}\n"
+            f"{props}end_header\n").encode()
+
+
+def ply_rows(pts: np.ndarray, colors) -> bytes:
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if colors is not None:
-        props += "property uchar red\nproperty uchar green\nproperty uchar blue\n"
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
     rec = np.empty(len(pts), dtype=fields)
     rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
     if colors is not None:
         rec["red"], rec["green"], rec["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
-    header = f"ply\nformat binary_little_endian 1.0\ncomment voxtool voxel centres\nelement vertex {len(pts)}\n{props}end_header\n"
+    return rec.tobytes()
+
+
+def pcd_header(points: int, coloured: bool) -> bytes:
+    fields, sizes, types = ("x y z rgb", "4 4 4 4", "F F F F") if coloured else ("x y z", "4 4 4", "F F F")
+    return (f"# .PCD v0.7 - voxtool voxel centres\nVERSION 0.7\nFIELDS {fields}\nSIZE {sizes}\nTYPE {types}\n"
+            f"COUNT {' '.join('1' * len(fields.split()))}\nWIDTH {points}\nHEIGHT 1\n"
+            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA binary\n").encode()
+
+
+def pcd_rows(pts: np.ndarray, colors) -> bytes:
+    if colors is None:
+        return np.ascontiguousarray(pts, dtype="<f4").tobytes()
+    rgb = (colors[:, 0].astype(np.uint32) << 16) | (colors[:, 1].astype(np.uint32) << 8) | colors[:, 2]
+    rec = np.empty((len(pts), 4), dtype="<f4")
+    rec[:, :3] = pts
+    rec[:, 3] = rgb.astype("<u4").view("<f4")
+    return rec.tobytes()
+
+
+# a point cloud format: (header for n points, coloured or not; the bytes of some points)
+CLOUD_FORMATS = {"ply": (ply_header, ply_rows), "pcd": (pcd_header, pcd_rows)}
+
+
+def write_cloud(fmt: str, path: Path, leaves: Leaves, resolution: float, threshold_log: float,
+                include_free: bool) -> dict:
+    header, rows = CLOUD_FORMATS[fmt]
+    pts, colors = _cloud(leaves, resolution, threshold_log, include_free)
     with atomic_writer(path) as handle:
-        handle.write(header.encode())
-        handle.write(rec.tobytes())
-    return _cloud_figures("ply", pts, colors, occupied_count(leaves, threshold_log))
+        handle.write(header(len(pts), colors is not None))
+        handle.write(rows(pts, colors))
+    return _cloud_figures(fmt, pts, colors, occupied_count(leaves, threshold_log))
+
+
+def write_ply(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> dict:
+    return write_cloud("ply", path, leaves, resolution, threshold_log, include_free)
 
 
 def write_pcd(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> dict:
-    pts, colors = _cloud(leaves, resolution, threshold_log, include_free)
-    if colors is None:
-        fields, sizes, types = "x y z", "4 4 4", "F F F"
-        rec = np.ascontiguousarray(pts, dtype="<f4")
-    else:
-        fields, sizes, types = "x y z rgb", "4 4 4 4", "F F F F"
-        rgb = (colors[:, 0].astype(np.uint32) << 16) | (colors[:, 1].astype(np.uint32) << 8) | colors[:, 2]
-        rec = np.empty((len(pts), 4), dtype="<f4")
-        rec[:, :3] = pts
-        rec[:, 3] = rgb.astype("<u4").view("<f4")
-    header = (f"# .PCD v0.7 - voxtool voxel centres\nVERSION 0.7\nFIELDS {fields}\nSIZE {sizes}\nTYPE {types}\n"
-              f"COUNT {' '.join('1' * len(fields.split()))}\nWIDTH {len(pts)}\nHEIGHT 1\n"
-              f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(pts)}\nDATA binary\n")
-    with atomic_writer(path) as handle:
-        handle.write(header.encode())
-        handle.write(rec.tobytes())
-    return _cloud_figures("pcd", pts, colors, occupied_count(leaves, threshold_log))
+    return write_cloud("pcd", path, leaves, resolution, threshold_log, include_free)
 
 
 def occupied_count(leaves: Leaves, threshold_log: float) -> int:
     return int(leaf_span(leaves.depths[leaves.values > np.float32(threshold_log)]).sum())
 
 
-def topdown_image(leaves: Leaves, resolution: float, threshold_log: float, max_side: int = 4096) -> np.ndarray:
-    """(H, W, 3) uint8 top view: occupied coloured by the height of the highest occupied voxel,
-    free in light green, unknown dark. Each pixel covers 2^k voxels per side so the image fits."""
-    if len(leaves) == 0:
-        return np.zeros((1, 1, 3), dtype=np.uint8) + np.array(UNKNOWN_RGB, np.uint8)
-    spans = leaf_span(leaves.depths)
-    side = leaf_edge(leaves.depths)
-    lo = morton_decode(leaves.codes).astype(np.int64)
-    hi = morton_decode(leaves.codes + spans - 1).astype(np.int64)
-    kmin, kmax = lo.min(axis=0), hi.max(axis=0)
-    shift = 0
-    while max(kmax[0] - kmin[0], kmax[1] - kmin[1]) >> shift >= max_side:
-        shift += 1
-    w = int((kmax[0] - kmin[0]) >> shift) + 1
-    h = int((kmax[1] - kmin[1]) >> shift) + 1
-    state = np.zeros(h * w, dtype=np.int8)  # 0 unknown, 1 free, 2 occupied
-    height = np.full(h * w, -np.inf)
-    occupied = leaves.values > np.float32(threshold_log)
-    top_z = keys_to_coords(hi[:, 2], resolution)
-    for s in np.unique(side):
-        sel = side == s
-        px0 = (lo[sel, 0] - kmin[0]) >> shift
-        py0 = (lo[sel, 1] - kmin[1]) >> shift
-        n = max(int(s) >> shift, 1)
-        for dx in range(n):
-            for dy in range(n):
-                flat = (py0 + dy) * w + (px0 + dx)
-                np.maximum.at(state, flat, np.where(occupied[sel], 2, 1).astype(np.int8))
-                occ_flat = flat[occupied[sel]]
-                np.maximum.at(height, occ_flat, top_z[sel][occupied[sel]])
-    img = np.empty((h * w, 3), dtype=np.uint8)
-    img[:] = UNKNOWN_RGB
-    img[state == 1] = FREE_RGB
-    occ = state == 2
-    if occ.any():
-        z = height[occ]
-        t = (z - z.min()) / max(z.max() - z.min(), 1e-9)
-        img[occ, 0] = (60 + 195 * t).astype(np.uint8)
-        img[occ, 1] = (40 + 80 * (1 - t)).astype(np.uint8)
-        img[occ, 2] = (200 * (1 - t)).astype(np.uint8)
-    # image rows go down; world y goes up
-    return img.reshape(h, w, 3)[::-1]
+def write_png(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
+              **picture) -> dict:
+    """A picture with legend, scale and axes (io.picture; matplotlib is imported only here)."""
+    from voxtool.io.picture import write_png as draw
 
-
-def png_bytes(img: np.ndarray) -> bytes:
-    """Minimal PNG encoder (8-bit RGB, filter 0 rows, zlib)."""
-    h, w, _ = img.shape
-    raw = np.concatenate([np.zeros((h, 1), np.uint8), img.reshape(h, w * 3)], axis=1).tobytes()
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
-
-
-def write_png(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> dict:
-    if include_free:
-        raise ParameterError(f"{path}: a picture always shows free space (light green); --free is for .ply/.pcd")
-    img = topdown_image(leaves, resolution, threshold_log)
-    with atomic_writer(path) as handle:
-        handle.write(png_bytes(img))
-    return {"format": "png", "width": int(img.shape[1]), "height": int(img.shape[0])}
+    return draw(path, leaves, resolution, threshold_log, include_free, **picture)
 
 
 def write_bt_export(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> dict:

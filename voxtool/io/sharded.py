@@ -20,6 +20,7 @@ import numpy as np
 
 from voxtool.atomic import atomic_writer
 from voxtool.errors import FormatError, VoxtoolError
+from voxtool.io.sharded_tree import Units, add_part, join_counts
 
 MANIFEST = "manifest.json"
 FORMAT = "voxtool-sharded-map"
@@ -160,8 +161,8 @@ def load_sharded(path: str | os.PathLike):
 
 def combined_stats(parts: list[dict], manifest: dict) -> dict:
     """A sharded map's statistics from its parts' (leaf_stats of each, with its `leaves`): voxel
-    counts and the bounding box are exact; node counts would need the tree across parts and
-    are left out (None)."""
+    counts and the bounding box; node counts need the tree across the parts (None here; see
+    sharded_stats)."""
     out = {"backend": "octree", "sharded": True, "partitions": manifest["partitions"],
            "resolution": manifest["map_params"]["resolution"], "occupied_voxels": 0, "free_voxels": 0,
            "occupied_bbox": None, "part_leaves_max": 0, "leaf_nodes": None, "inner_nodes": None,
@@ -187,14 +188,18 @@ def combined_stats(parts: list[dict], manifest: dict) -> dict:
 
 def sharded_stats(path: str | os.PathLike, progress: bool | None = False) -> dict:
     """Statistics of a sharded snapshot, read part by part (each part's figures computed from
-    its leaves, not taken from the manifest); see combined_stats."""
+    its leaves, not taken from the manifest), with the node counts of the whole map's trees."""
+    from voxtool.maps.tree import max_likelihood
     from voxtool.progress import track
     from voxtool.stats import leaf_stats
 
     manifest = read_manifest(path)
     parts = []
+    ml, lo = Units(), Units()
     for _, backend in track(iter_parts(path), len(manifest["parts"]), "stats", progress, "part"):
         leaves = backend.leaves()
         parts.append({**leaf_stats(leaves, backend.params.resolution, backend.sensor.threshold_log),
                       "leaves": len(leaves)})
-    return combined_stats(parts, manifest)
+        add_part(lo, leaves, backend.shard_depth)
+        add_part(ml, max_likelihood(leaves, backend.sensor.threshold_log), backend.shard_depth)
+    return {**combined_stats(parts, manifest), **join_counts(ml, lo)}

@@ -1,0 +1,88 @@
+"""`export map.png`: the picture's pixels against a brute-force projection of the map's voxels,
+and the figure's furniture (axes in metres, colour bar, legend, scale bar) read back from matplotlib."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import cli
+
+from voxtool.api import load_leaves
+from voxtool.errors import ParameterError
+from voxtool.io import picture
+from voxtool.keys import expand_leaves, keys_to_coords, morton_decode
+
+
+def _occupied_voxels(leaves, threshold):
+    occ = leaves.values > np.float32(threshold)
+    return morton_decode(expand_leaves(leaves.codes[occ], leaves.depths[occ])).astype(np.int64)
+
+
+@pytest.mark.parametrize("view", ["top", "front", "side"])
+def test_view_pixels_equal_a_brute_force_projection(sample_map, view):
+    leaves, res, thr, _ = load_leaves(sample_map[0])
+    raster = picture.picture(leaves, res, thr, view)
+    u, w, a, from_plus = picture.VIEWS[view]
+    keys = _occupied_voxels(leaves, thr)
+    px = (keys[:, u] - raster.kmin[0]) >> raster.shift
+    py = (keys[:, w] - raster.kmin[1]) >> raster.shift
+    flat = py * raster.width + px
+    assert int((raster.state == picture.OCCUPIED).sum()) == len(np.unique(flat))
+    # the colour: the coordinate of the occupied voxel nearest the viewer on each pixel's line
+    near = np.full(raster.width * raster.height, -np.inf)
+    np.maximum.at(near, flat, keys[:, a] if from_plus else -keys[:, a])
+    expect = keys_to_coords(np.where(np.isfinite(near), np.abs(near), np.nan), res).reshape(raster.height, -1)
+    got = raster.values_m(res)
+    assert np.array_equal(np.isnan(got), np.isnan(expect))
+    assert np.allclose(got[~np.isnan(got)], expect[~np.isnan(expect)])
+
+
+def test_slice_shows_exactly_the_occupied_voxels_of_one_layer(sample_map):
+    leaves, res, thr, _ = load_leaves(sample_map[0])
+    keys = _occupied_voxels(leaves, thr)
+    layer = int(np.bincount(keys[:, 2] - keys[:, 2].min()).argmax() + keys[:, 2].min())  # the fullest layer
+    z = float(keys_to_coords(np.array([layer]), res)[0])
+    raster = picture.picture(leaves, res, thr, "top", slice_z=z)
+    assert raster.layer == layer
+    in_layer = keys[keys[:, 2] == layer]
+    cells = np.unique(((in_layer[:, 1] - raster.kmin[1]) >> raster.shift) * raster.width
+                      + ((in_layer[:, 0] - raster.kmin[0]) >> raster.shift))
+    assert np.array_equal(np.flatnonzero(raster.state == picture.OCCUPIED), cells)
+    with pytest.raises(ParameterError, match="--view top"):
+        picture.picture(leaves, res, thr, "side", slice_z=z)
+
+
+def test_figure_has_metric_axes_colour_bar_legend_and_scale_bar(sample_map):
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    leaves, res, thr, _ = load_leaves(sample_map[0])
+    raster = picture.picture(leaves, res, thr, "front")
+    fig = picture.figure(raster, res, "sample")
+    ax, bar = fig.axes
+    left, right, bottom, top = raster.metres(res)
+    assert ax.get_xlim() == pytest.approx((left, right)) and ax.get_ylim() == pytest.approx((bottom, top))
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("x (m)", "z (m)")
+    values = raster.values_m(res)
+    lo, hi = bar.get_xlim() if bar.get_xlabel() else bar.get_ylim()
+    assert lo == pytest.approx(np.nanmin(values)) and hi == pytest.approx(np.nanmax(values), abs=1e-6)
+    assert "(m)" in (bar.get_xlabel() + bar.get_ylabel())
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["free", "unknown"]
+    bars = [a for a in ax.artists if isinstance(a, AnchoredSizeBar)]
+    assert len(bars) == 1 and bars[0].txt_label.get_text().endswith(" m")
+    caption = " ".join(t.get_text() for t in fig.texts)
+    assert f"resolution {res:g} m" in caption and f"{int((raster.state == picture.OCCUPIED).sum()):,} occupied" in caption
+
+
+def test_cli_png_is_readable_and_free_is_refused(sample_map, tmp_path):
+    import json
+
+    from matplotlib.image import imread
+
+    out = tmp_path / "side.png"
+    code, text, err = cli("export", sample_map[0], "-o", out, "--view", "side", "--json")
+    assert code == 0, err
+    report = json.loads(text)
+    image = imread(out)
+    assert image.shape[:2] == (report["height"], report["width"]) and report["view"] == "side"
+    code, _, err = cli("export", sample_map[0], "-o", tmp_path / "f.png", "--free")
+    assert code != 0 and "--free is for .ply/.pcd" in err and not (tmp_path / "f.png").exists()

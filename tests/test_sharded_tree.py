@@ -1,0 +1,86 @@
+"""A sharded map's tree joined from its parts (io.sharded_tree) against the tree of the whole
+map: random trees with pruned leaves above, at and below the shard depth, cut into parts the
+way a sharded build cuts them."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+
+from voxtool.distbuild import partition_of
+from voxtool.io.bt import tree_stream
+from voxtool.io.sharded_tree import Units, add_part, join, write_pieces
+from voxtool.maps.base import Leaves
+from voxtool.maps.tree import collapse, node_counts
+
+SHARD_DEPTH = 8
+
+
+def random_tree(rng, max_depth=10) -> Leaves:
+    """Canonical leaves of a random tree below a few depth-3 nodes: nodes split with a chance
+    that falls with depth; leaf values from a small set, so that siblings often prune."""
+    codes, depths, values = [], [], []
+
+    def grow(code, depth):
+        if depth < max_depth and (depth < 4 or rng.random() < (0.8 if depth < SHARD_DEPTH else 0.3)):
+            step = 1 << (3 * (15 - depth))
+            for j in range(8):
+                if rng.random() < 0.85:
+                    grow(code + j * step, depth + 1)
+            return
+        codes.append(code)
+        depths.append(depth)
+        values.append(rng.choice([-2.0, 0.5, 3.5]))
+
+    for top in rng.choice(8 ** 3, size=1, replace=False):
+        grow(int(top) << (3 * 13), 3)
+    order = np.argsort(codes)
+    leaves = Leaves(np.array(codes, np.int64)[order], np.array(depths, np.uint8)[order],
+                    np.array(values, np.float32)[order])
+    return collapse(leaves)
+
+
+def parts_of(leaves: Leaves, partitions: int) -> list[Leaves]:
+    """Leaves split by the partition of their shard (a leaf above the shard depth goes where
+    its first shard goes), each part pruned on its own, as a part snapshot holds it."""
+    part = partition_of(leaves.codes, SHARD_DEPTH, partitions)
+    return [collapse(Leaves(leaves.codes[part == p], leaves.depths[part == p], leaves.values[part == p]))
+            for p in range(partitions)]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_joined_tree_equals_the_whole_tree(seed):
+    rng = np.random.default_rng(seed)
+    whole = random_tree(rng)
+    assert (whole.depths < SHARD_DEPTH).any() and (whole.depths > SHARD_DEPTH).any()
+    ml = Leaves(whole.codes, whole.depths, np.where(whole.values > 0, 1.0, -1.0).astype(np.float32))
+    expected_bytes, ml_leaves, ml_inner = tree_stream(whole, 0.0)
+    for partitions in (1, 3, 7):
+        logodds, maxlike = Units(), Units()
+        spool = io.BytesIO()
+        for piece in parts_of(whole, partitions):
+            add_part(logodds, piece, SHARD_DEPTH)
+        for piece in parts_of(collapse(ml), partitions):
+            add_part(maxlike, piece, SHARD_DEPTH, spool)
+        assert join(logodds.arrays())[:2] == node_counts(whole)
+        table = maxlike.arrays()
+        leaves_n, inner_n, pieces = join(table)
+        assert (leaves_n, inner_n) == (ml_leaves, ml_inner)
+        out = io.BytesIO()
+        write_pieces(out, pieces, table, spool)
+        assert out.getvalue() == expected_bytes
+
+
+def test_eight_equal_shards_in_different_parts_prune_above_them():
+    """Eight sibling shards, each one leaf of one value, in different parts: the join makes
+    them one leaf, as the whole map's pruning does."""
+    span = 1 << (3 * (16 - SHARD_DEPTH))
+    first = (5 << (3 * 13))
+    whole = Leaves(first + span * np.arange(8, dtype=np.int64), np.full(8, SHARD_DEPTH, np.uint8),
+                   np.full(8, 3.5, np.float32))
+    units = Units()
+    for p in range(8):
+        add_part(units, Leaves(whole.codes[p:p + 1], whole.depths[p:p + 1], whole.values[p:p + 1]), SHARD_DEPTH)
+    assert join(units.arrays())[:2] == node_counts(collapse(whole)) == (1, SHARD_DEPTH - 1)

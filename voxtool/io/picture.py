@@ -1,0 +1,257 @@
+"""Pictures of a map a person can read (`export map.png`): a top, front or side view, or one
+height slice, drawn with matplotlib (headless: a Figure on the Agg canvas, no pyplot), with a
+colour bar in metres, a legend for free and unknown space, a scale bar, axes in metres, the
+axis arrows and a caption (source, view, resolution, metres per pixel).
+
+A view projects the map along one axis: a pixel is occupied when any voxel on its line is,
+coloured by the coordinate of the nearest occupied voxel seen from the viewer (the top view:
+the height of the highest one); else free when any voxel on it is free; else unknown. A slice
+shows the one voxel layer that holds height Z, seen from above.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from voxtool.errors import ParameterError
+from voxtool.keys import TREE_MAX_VAL, keys_to_coords, leaf_edge, morton_decode
+from voxtool.maps.base import Leaves
+
+# view: (image's horizontal axis, vertical axis, axis looked along, the viewer on its + side)
+VIEWS = {"top": (0, 1, 2, True), "front": (0, 2, 1, False), "side": (1, 2, 0, True)}
+AXIS = "xyz"
+UNKNOWN, FREE, OCCUPIED = 0, 1, 2
+FREE_RGB = (0.80, 0.90, 0.80)
+UNKNOWN_RGB = (0.93, 0.93, 0.93)
+SLICE_RGB = (0.80, 0.15, 0.10)
+COLORMAP = "viridis"
+MAX_SIDE = 1600  # raster pixels on the longer side: 2^k voxels per pixel above that
+
+
+def _extent(leaves: Leaves) -> tuple[np.ndarray, np.ndarray]:
+    """First and last key (per axis) of every leaf."""
+    lo = morton_decode(leaves.codes).astype(np.int64)
+    return lo, lo + leaf_edge(leaves.depths)[:, None].astype(np.int64) - 1
+
+
+def slice_layer(z: float, resolution: float) -> int:
+    key = int(np.floor(z / resolution)) + TREE_MAX_VAL
+    if not 0 <= key < 2 * TREE_MAX_VAL:
+        raise ParameterError(f"--slice {z:g}: outside the map's key range at resolution {resolution:g} m")
+    return key
+
+
+@dataclass
+class Raster:
+    """The picture's pixels, filled leaf set by leaf set (a sharded map part by part)."""
+
+    view: str
+    kmin: np.ndarray  # first key on the horizontal and vertical axes
+    shift: int  # a pixel is 2^shift voxels on a side
+    width: int
+    height: int
+    layer: int | None = None  # the z key of a slice
+
+    @classmethod
+    def covering(cls, view: str, kmin, kmax, layer: int | None = None, max_side: int = MAX_SIDE) -> Raster:
+        u, w, _, _ = VIEWS[view]
+        lo = np.array([kmin[u], kmin[w]], np.int64)
+        size = np.array([kmax[u], kmax[w]], np.int64) - lo + 1
+        shift = 0
+        while int(size.max()) > max_side << shift:
+            shift += 1
+        raster = cls(view, lo, shift, int((size[0] - 1) >> shift) + 1, int((size[1] - 1) >> shift) + 1, layer)
+        raster.state = np.zeros(raster.width * raster.height, np.int8)
+        raster.depth = np.full(raster.width * raster.height, -np.inf)  # nearest occupied, signed
+        return raster
+
+    def add(self, leaves: Leaves, threshold_log: float) -> None:
+        u, w, a, from_plus = VIEWS[self.view]
+        lo, hi = _extent(leaves)
+        if self.layer is not None:
+            keep = (lo[:, 2] <= self.layer) & (hi[:, 2] >= self.layer)
+            lo, hi, leaves = lo[keep], hi[keep], Leaves(leaves.codes[keep], leaves.depths[keep], leaves.values[keep])
+        occupied = leaves.values > np.float32(threshold_log)
+        state = np.where(occupied, OCCUPIED, FREE).astype(np.int8)
+        # the signed depth of the voxel nearest the viewer: larger is nearer
+        near = hi[:, a] if from_plus else -lo[:, a]
+        edge = leaf_edge(leaves.depths).astype(np.int64)
+        for e in np.unique(edge):
+            sel = edge == e
+            px0 = (lo[sel, u] - self.kmin[0]) >> self.shift
+            py0 = (lo[sel, w] - self.kmin[1]) >> self.shift
+            n = max(int(e) >> self.shift, 1)  # pixels a leaf covers on a side
+            occ = occupied[sel]
+            for dx in range(n):
+                for dy in range(n):
+                    flat = (py0 + dy) * self.width + (px0 + dx)
+                    np.maximum.at(self.state, flat, state[sel])
+                    np.maximum.at(self.depth, flat[occ], near[sel][occ])
+
+    def values_m(self, resolution: float) -> np.ndarray:
+        """The colour coordinate of occupied pixels in metres (NaN elsewhere), rows from the bottom."""
+        _, _, _, from_plus = VIEWS[self.view]
+        key = np.where(self.state == OCCUPIED, self.depth if from_plus else -self.depth, np.nan)
+        return keys_to_coords(key, resolution).reshape(self.height, self.width)
+
+    def metres(self, resolution: float) -> tuple[float, float, float, float]:
+        """Extent (left, right, bottom, top) of the picture in metres (voxel edges)."""
+        lo = (self.kmin - TREE_MAX_VAL) * resolution
+        step = resolution * (1 << self.shift)
+        return float(lo[0]), float(lo[0] + self.width * step), float(lo[1]), float(lo[1] + self.height * step)
+
+
+def key_bounds(leaves: Leaves) -> tuple[np.ndarray, np.ndarray] | None:
+    if len(leaves) == 0:
+        return None
+    lo, hi = _extent(leaves)
+    return lo.min(axis=0), hi.max(axis=0)
+
+
+def _nice_length(span_m: float) -> float:
+    """A scale bar length near a fifth of the picture: 1, 2 or 5 times a power of ten."""
+    target = span_m / 5
+    power = 10 ** np.floor(np.log10(target))
+    return float(max((m * power for m in (1, 2, 5) if m * power <= target), default=power))
+
+
+def figure(raster: Raster, resolution: float, label: str):
+    """The matplotlib Figure of a raster: picture, colour bar, legend, scale bar, arrows, caption."""
+    from matplotlib import colormaps
+    from matplotlib.colors import Normalize
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredDirectionArrows, AnchoredSizeBar
+
+    u, w, a, _ = VIEWS[raster.view]
+    state = raster.state.reshape(raster.height, raster.width)
+    rgb = np.empty((raster.height, raster.width, 3))
+    rgb[:] = UNKNOWN_RGB
+    rgb[state == FREE] = FREE_RGB
+    occupied = state == OCCUPIED
+    values = raster.values_m(resolution)
+    norm = None
+    if raster.layer is not None:
+        rgb[occupied] = SLICE_RGB
+    elif occupied.any():
+        norm = Normalize(float(np.nanmin(values)), float(np.nanmax(values)) + 1e-9)
+        rgb[occupied] = colormaps[COLORMAP](norm(values[occupied]))[:, :3]
+    left, right, bottom, top = raster.metres(resolution)
+    aspect = (top - bottom) / max(right - left, 1e-9)
+    flat = aspect < 0.6  # a wide picture: the colour bar goes below it
+    fig = Figure(figsize=(11, float(np.clip(9.5 * aspect, 0.5, 14)) + (2.8 if flat else 1.4)), dpi=150,
+                 layout="constrained")
+    ax = fig.add_subplot()
+    ax.imshow(rgb, origin="lower", extent=(left, right, bottom, top), interpolation="nearest")
+    ax.set_xlabel(f"{AXIS[u]} (m)")
+    ax.set_ylabel(f"{AXIS[w]} (m)")
+    if raster.layer is not None:
+        z0 = keys_to_coords(np.array([raster.layer]), resolution)[0] - resolution / 2
+        title = f"slice z = {z0:.3g} .. {z0 + resolution:.3g} m"
+    else:
+        title = f"{raster.view} view (looking along {'-' if VIEWS[raster.view][3] else '+'}{AXIS[a]})"
+    ax.set_title(title, loc="left")
+    handles = [Patch(facecolor=FREE_RGB, edgecolor="0.5", label="free"),
+               Patch(facecolor=UNKNOWN_RGB, edgecolor="0.5", label="unknown")]
+    if raster.layer is not None:
+        handles.insert(0, Patch(facecolor=SLICE_RGB, label="occupied"))
+    ax.legend(handles=handles, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=len(handles), fontsize=8,
+              frameon=False)
+    if norm is not None:
+        from matplotlib.cm import ScalarMappable
+
+        what = "height of the highest occupied voxel" if raster.view == "top" else \
+            f"{AXIS[a]} of the nearest occupied voxel"
+        fig.colorbar(ScalarMappable(norm, colormaps[COLORMAP]), ax=ax, shrink=0.8, label=f"{what} (m)",
+                     location="bottom" if flat else "right")
+    length = _nice_length(right - left)
+    ax.add_artist(AnchoredSizeBar(ax.transData, length, f"{length:g} m", "lower right", pad=0.5, sep=4,
+                                  frameon=True, size_vertical=(top - bottom) / 150))
+    # the axes' directions, in the lower left corner (data units: both arrows equally long)
+    arrow = min(length / 2, (top - bottom) / 4)
+    letters = min(arrow / 3, max(right - left, top - bottom) / 80)  # TextPath: a height in metres
+    ax.add_artist(AnchoredDirectionArrows(ax.transData, f"+{AXIS[u]}", f"+{AXIS[w]}", length=arrow,
+                                          loc="lower left", fontsize=letters, sep_x=arrow / 10, sep_y=arrow / 10,
+                                          back_length=0, color="k", head_width=6, head_length=8, tail_width=1.5))
+    step = resolution * (1 << raster.shift)
+    fig.text(0.01, 0.005, f"{label} · resolution {resolution:g} m · 1 pixel = {step:g} m · "
+                          f"{int(occupied.sum()):,} occupied pixels", fontsize=8, ha="left", va="bottom")
+    return fig
+
+
+def save(fig, path: Path) -> tuple[int, int]:
+    """Write a figure as PNG (atomically), cropped to what is drawn; returns its (width, height) in pixels."""
+    import io
+
+    from voxtool.atomic import atomic_writer
+
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", bbox_inches="tight", pad_inches=0.1)
+    blob = buffer.getvalue()
+    with atomic_writer(path) as handle:
+        handle.write(blob)
+    return int.from_bytes(blob[16:20], "big"), int.from_bytes(blob[20:24], "big")  # the IHDR chunk
+
+
+def check_options(view: str, slice_z: float | None) -> None:
+    if view not in VIEWS:
+        raise ParameterError(f"--view {view}: use one of {', '.join(VIEWS)}")
+    if slice_z is not None and view != "top":
+        raise ParameterError("--slice shows one height layer from above: use it with --view top")
+
+
+def figures(raster: Raster) -> dict:
+    return {"format": "png", "view": raster.view, "raster_width": raster.width, "raster_height": raster.height,
+            "voxels_per_pixel": 1 << raster.shift, "occupied_pixels": int((raster.state == OCCUPIED).sum()),
+            "free_pixels": int((raster.state == FREE).sum())}
+
+
+def picture(leaves: Leaves, resolution: float, threshold_log: float, view: str = "top",
+            slice_z: float | None = None) -> Raster:
+    check_options(view, slice_z)
+    bounds = key_bounds(leaves)
+    if bounds is None:
+        raise ParameterError("the map is empty: there is nothing to draw")
+    layer = slice_layer(slice_z, resolution) if slice_z is not None else None
+    raster = Raster.covering(view, *bounds, layer)
+    raster.add(leaves, threshold_log)
+    return raster
+
+
+def write_png(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
+              view: str = "top", slice_z: float | None = None, label: str = "") -> dict:
+    if include_free:
+        raise ParameterError(f"{path}: a picture always shows free space (legend: free); --free is for .ply/.pcd")
+    raster = picture(leaves, resolution, threshold_log, view, slice_z)
+    width, height = save(figure(raster, resolution, label or path.stem), path)
+    return {**figures(raster), "width": width, "height": height}
+
+
+def picture_of_parts(path: Path, output: Path, include_free: bool, progress=False, view: str = "top",
+                     slice_z: float | None = None, label: str = "") -> dict:
+    """write_png for a sharded map: one pass over the parts for the bounds, one to draw."""
+    from voxtool.io import sharded
+    from voxtool.progress import track
+
+    if include_free:
+        raise ParameterError(f"{output}: a picture always shows free space (legend: free); --free is for .ply/.pcd")
+    check_options(view, slice_z)
+    manifest = sharded.read_manifest(path)
+    parts = len(manifest["parts"])
+    lo = hi = None
+    for _, backend in track(sharded.iter_parts(path), parts, "export .png (bounds)", progress, "part"):
+        bounds = key_bounds(backend.leaves())
+        if bounds is not None:
+            lo = bounds[0] if lo is None else np.minimum(lo, bounds[0])
+            hi = bounds[1] if hi is None else np.maximum(hi, bounds[1])
+    if lo is None:
+        raise ParameterError(f"{path}: the map is empty: there is nothing to draw")
+    resolution = manifest["map_params"]["resolution"]
+    raster = Raster.covering(view, lo, hi, slice_layer(slice_z, resolution) if slice_z is not None else None)
+    for _, backend in track(sharded.iter_parts(path, check_hash=False), parts, "export .png", progress, "part"):
+        raster.add(backend.leaves(), backend.sensor.threshold_log)
+    width, height = save(figure(raster, resolution, label or path.name), output)
+    return {**figures(raster), "width": width, "height": height}

@@ -1,0 +1,86 @@
+"""Exports and tree statistics of a sharded map, read part by part (memory: the largest part).
+
+.bt: each part's max-likelihood subtrees are spooled to a temporary file beside the output,
+then joined above the shards (io.sharded_tree) into OctoMap's stream: the same bytes as the
+export of the whole map. .ply/.pcd: the header's point count comes from the manifest and is
+checked against the points written. .png: one pass for the bounds, one to draw.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+from voxtool.atomic import atomic_writer
+from voxtool.errors import FormatError, ParameterError
+from voxtool.io import sharded
+from voxtool.io.sharded_tree import Units, add_part, join, write_pieces
+from voxtool.progress import track
+
+STREAMED = (".bt", ".ply", ".pcd", ".png")
+
+
+def _parts(path: Path, progress, what: str):
+    manifest = sharded.read_manifest(path)
+    return manifest, track(sharded.iter_parts(path), len(manifest["parts"]), what, progress, "part")
+
+
+def export_sharded(path: str | Path, output: Path, include_free: bool, progress: bool | None = False,
+                   **picture) -> dict:
+    """Write a sharded map as .bt, .ply, .pcd or .png (`picture`: io.picture's view options)
+    without holding it whole."""
+    path = Path(path)
+    kind = output.suffix.lower()
+    if kind == ".bt":
+        return _bt(path, output, include_free, progress)
+    if kind in (".ply", ".pcd"):
+        return _cloud(path, output, kind[1:], include_free, progress)
+    if kind == ".png":
+        from voxtool.io.picture import picture_of_parts
+
+        return picture_of_parts(path, output, include_free, progress, **picture)
+    raise ParameterError(f"{output}: a sharded map is exported part by part as {', '.join(STREAMED)}")
+
+
+def _bt(path: Path, output: Path, include_free: bool, progress) -> dict:
+    from voxtool.io.bt import HEADER
+    from voxtool.maps.tree import max_likelihood
+
+    if include_free:
+        raise ParameterError(f"{output}: a .bt always holds free and occupied voxels; --free is for .ply/.pcd")
+    units = Units()
+    resolution = None
+    with tempfile.TemporaryFile(dir=output.parent, prefix=".voxtool-spool-") as spool:
+        _, parts = _parts(path, progress, "export .bt")
+        for _, backend in parts:
+            resolution = backend.params.resolution
+            add_part(units, max_likelihood(backend.leaves(), backend.sensor.threshold_log), backend.shard_depth, spool)
+        table = units.arrays()
+        leaf_nodes, inner_nodes, pieces = join(table)
+        header = (f"{HEADER.decode()}\n# (written by voxtool)\n#\nid OcTree\nsize {leaf_nodes + inner_nodes}\n"
+                  f"res {resolution:.10g}\ndata\n").encode()
+        with atomic_writer(output) as handle:
+            handle.write(header)
+            write_pieces(handle, pieces, table, spool)
+    return {"format": "bt", "leaf_nodes": leaf_nodes, "inner_nodes": inner_nodes}
+
+
+def _cloud(path: Path, output: Path, fmt: str, include_free: bool, progress) -> dict:
+    from voxtool.io.export import CLOUD_FORMATS, _cloud
+
+    header, rows = CLOUD_FORMATS[fmt]
+    manifest = sharded.read_manifest(path)
+    occupied = sum(int(e.get("occupied_voxels", 0)) for e in manifest["parts"])
+    declared = occupied + (sum(int(e.get("free_voxels", 0)) for e in manifest["parts"]) if include_free else 0)
+    written = 0
+    with atomic_writer(output) as handle:
+        handle.write(header(declared, include_free))
+        _, parts = _parts(path, progress, f"export .{fmt}")
+        for _, backend in parts:
+            pts, colors = _cloud(backend.leaves(), backend.params.resolution, backend.sensor.threshold_log, include_free)
+            written += len(pts)
+            handle.write(rows(pts, colors))
+        if written != declared:  # the file is discarded
+            raise FormatError(f"{path}: its parts hold {written} voxels to write, the manifest {declared}")
+    return {"format": fmt, "points": written, "occupied_voxels": occupied,
+            "free_voxels": written - occupied if include_free else None}
