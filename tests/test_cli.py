@@ -223,13 +223,25 @@ def test_wrong_output_suffixes_are_refused(tmp_path, sample_map):
     assert run("build")[0] == 2
 
 
-def test_cache_bench_on_sample_reports_consistent_rows():
+def test_cache_bench_on_sample_reports_consistent_rows(tmp_path):
     # each row is a process of its own (peak memory per configuration): the plain octree and one
     # OctoCache configuration with the write-back on its own thread (test_octocache.py tests the
     # others in this process)
-    code, text = run("cache-bench", "--sample", "--overlap", "1", "--order", "random", "--json")
+    from matplotlib.image import imread
+
+    from voxtool.plots import PARTS, cache_figure
+
+    plot = tmp_path / "cache.png"
+    code, text = run("cache-bench", "--sample", "--overlap", "1", "--order", "random", "--json", "--plot", plot)
     assert code == 0, text
-    rows = json.loads(text)["rows"]
+    result = json.loads(text)
+    rows = result["rows"]
+    assert imread(plot).shape[:2] == (result["height"], result["width"])
+    times, hits = cache_figure(result).axes[:2]
+    assert len(times.containers) == len(PARTS) and len(times.get_yticklabels()) == len(rows)
+    stacked = np.sum([[bar.get_width() for bar in c] for c in times.containers], axis=0)
+    assert np.allclose(stacked, [r["parts_s"] for r in rows])  # the bars are the measured parts
+    assert [bar.get_width() for bar in hits.containers[0]] == pytest.approx([0] + [100 * r["hit_ratio"] for r in rows[1:]])
     assert [r["backend"] for r in rows] == ["octree", "octocache"]
     for r in rows:
         assert r["identical_to_octree"]

@@ -32,10 +32,12 @@ RECORDED_COUNTS = ("scans", "points", "points_dropped", "raw_bytes")  # a build'
 def build_map(source: str | os.PathLike, options: SourceOptions, params: MapParams, sensor: SensorModel,
               backend_name: str = "octree", output: str | os.PathLike | None = None,
               progress: bool | None = None, backend_options: dict | None = None,
-              share: str | os.PathLike | None = None, share_ring: int = 3, robot: str = "r1") -> dict:
+              share: str | os.PathLike | None = None, share_ring: int = 3, robot: str = "r1",
+              per_scan: bool = False) -> dict:
     """Build a map from a source; write a snapshot if `output` is given. Returns stats + timings.
     `share` (hashmap backend): write each scan's newly occupied voxels, ring of `share_ring`
-    frames, as a packet log."""
+    frames, as a packet log. `per_scan`: add each scan's latency, stamp and map bytes
+    ("per_scan", the series of `build --plot`)."""
     from voxtool.atomic import check_writable
     from voxtool.io.mapfile import save_map
     from voxtool.maps import make_backend
@@ -65,6 +67,8 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     result = backend_stats(backend)
     result.update(report.to_dict())
     result["threads"] = backend.threads
+    if per_scan:
+        result["per_scan"] = report.per_scan()
     if writer is not None:
         result["shared_bytes"] = writer.bytes
         result["shared_packets"] = writer.seq

@@ -61,6 +61,7 @@ def run_config(source: str, options: dict, params: dict, sensor: dict, backend: 
         # thread 1's time: the octree update counts only where thread 1 did it or waited for it;
         # the final flush (drain + ordering + write-back) is all on thread 1
         t1_update = before_flush[1] if m.overlap else before_flush[0]
+        out["thread1_update_s"] = t1_update
         out["parts_s"] = raycast + c.insert + c.evict + t1_update + flush
         if m.overlap:
             out["overlapped"] = 1.0 - c.wait / max(c.octree_update - flush, 1e-9)

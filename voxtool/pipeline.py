@@ -35,6 +35,13 @@ class BuildReport:
     rays: int = 0
     merged_rays: int = 0
     scan_latency: list[float] = field(default_factory=list)
+    scan_stamps_ns: list[int] = field(default_factory=list)
+    map_bytes: list[int] = field(default_factory=list)  # the map's used bytes after each scan
+
+    def per_scan(self) -> dict:
+        """The series `build --plot` draws (not in to_dict: a long run has many scans)."""
+        return {"latency_ms": [round(s * 1e3, 4) for s in self.scan_latency], "stamps_ns": self.scan_stamps_ns,
+                "map_bytes": self.map_bytes}
 
     def to_dict(self) -> dict:
         lat = np.array(self.scan_latency) * 1e3 if self.scan_latency else np.zeros(1)
@@ -127,6 +134,8 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
                 on_scan(scan, backend)
             report.time_read += read_s
             report.scan_latency.append(timing.raycast + timing.update)
+            report.scan_stamps_ns.append(scan.stamp_ns)
+            report.map_bytes.append(backend.used_bytes())
             report.time_raycast += timing.raycast
             report.time_update += timing.update
             report.voxel_updates += timing.voxel_updates

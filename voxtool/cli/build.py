@@ -9,10 +9,12 @@ import click
 from voxtool.cli.common import (
     backend_options,
     backend_setup,
+    check_plot,
     cluster_options,
     emit,
     emit_fleet,
     handle_errors,
+    plot_option,
     resolve_source,
     scan_options,
     scan_setup,
@@ -39,8 +41,9 @@ from voxtool.cli.common import (
                    "(formats/sharded.md); needs --workers or --scheduler.")
 @click.option("--json", "as_json", is_flag=True, help="Print statistics and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
+@plot_option("each scan's latency and the map's size over the scans (one map built in this process)")
 @handle_errors
-def build(sources, sample, output, share, ring, workers, scheduler, one_map, sharded, as_json, progress, **kw):
+def build(sources, sample, output, share, ring, workers, scheduler, one_map, sharded, as_json, progress, plot, **kw):
     """Build an occupancy map from SOURCE: a directory of PCD (or PLY + --poses) scans, a single
     PCD/PLY file, a ROS 2 .mcap file, or an OctoMap .graph file.
 
@@ -62,6 +65,10 @@ def build(sources, sample, output, share, ring, workers, scheduler, one_map, sha
     to_dir = output is not None and not sharded and not one_map and (
         output.endswith("/") or Path(output).is_dir() or (len(sources) > 1 and Path(output).suffix.lower() != ".vxm"))
     output = Path(output) if output is not None else None
+    if plot is not None and (dask or to_dir or len(sources) > 1 or sharded or one_map):
+        raise ParameterError("--plot draws the scans of one map built in this process: one SOURCE, "
+                             "without --workers/--scheduler")
+    check_plot(plot)
     if sharded or one_map or (not to_dir and (dask or len(sources) > 1)):
         if not dask:
             raise ParameterError("one map from several sources, or a sharded map, is built by Dask workers: "
@@ -96,6 +103,14 @@ def build(sources, sample, output, share, ring, workers, scheduler, one_map, sha
             raise ParameterError(f"{sources[0]}: an OctoMap .bt is imported with -o MAP.vxm")
         emit(export_map(sources[0], output, False, progress), as_json, [], written=output)
         return
-    result = build_map(sources[0], options, params, sensor, backend, output, progress, extra, share, ring)
+    result = build_map(sources[0], options, params, sensor, backend, output, progress, extra, share, ring,
+                       per_scan=plot is not None)
     warn_dropped(sources[0], result)
-    emit(result, as_json, summary_rows(result), written=output)
+    rows = summary_rows(result)
+    if plot is not None:
+        from voxtool.plots import build_figure, write_plot
+
+        result.update(write_plot(build_figure(result, sources[0].name), plot))
+        del result["per_scan"]
+        rows.append(("plot", str(plot)))
+    emit(result, as_json, rows, written=output)

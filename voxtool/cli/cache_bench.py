@@ -8,7 +8,16 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import handle_errors, int_list, resolve_source, scan_options, scan_setup, threads_option
+from voxtool.cli.common import (
+    check_plot,
+    handle_errors,
+    int_list,
+    plot_option,
+    resolve_source,
+    scan_options,
+    scan_setup,
+    threads_option,
+)
 
 
 @click.command("cache-bench")
@@ -23,8 +32,9 @@ from voxtool.cli.common import handle_errors, int_list, resolve_source, scan_opt
               help="0 (write-back on the calling thread) and/or 1 (on its own thread, the paper's two threads).")
 @threads_option
 @click.option("--json", "as_json", is_flag=True, help="Print all rows as JSON.")
+@plot_option("each configuration's time decomposition and cache hit ratio")
 @handle_errors
-def cache_bench_cmd(source, sample, tau, buckets, order, overlap, threads, as_json, **kw):
+def cache_bench_cmd(source, sample, tau, buckets, order, overlap, threads, as_json, plot, **kw):
     """Run the same scans through the plain octree and through OctoCache settings; report time and
     where it goes, cache hit ratio, octree writes saved, memory, and check the maps are identical
     (exit 1 when any differs)."""
@@ -41,9 +51,14 @@ def cache_bench_cmd(source, sample, tau, buckets, order, overlap, threads, as_js
     def progress(k, n, backend, cfg):
         click.echo(f"[{k + 1}/{n}] {backend} {cfg}", err=True)
 
+    check_plot(plot)
     result = cache_bench(resolve_source(source, sample), options.__dict__, params.to_dict(), sensor.to_dict(),
                          taus, bucket_list, orders, overlaps, threads, progress if sys.stderr.isatty() else None)
     rows = result["rows"]
+    if plot is not None:
+        from voxtool.plots import cache_figure, write_plot
+
+        result.update(write_plot(cache_figure(result), plot))
     if as_json:
         click.echo(json.dumps(result, indent=2))
     else:
@@ -58,6 +73,8 @@ def cache_bench_cmd(source, sample, tau, buckets, order, overlap, threads, as_js
                 f"{(100 * r['hit_ratio'] if cache else 0):>6.1f} "
                 f"{(str(r['written_to_octree']) + '/' + str(r['voxel_updates'])) if cache else '-':>17} "
                 f"{r['speedup']:>7.2f} {(r['peak_rss_bytes'] or 0) / 2**20:>8.1f} {'yes' if r['identical_to_octree'] else 'NO':>4}")
+        if plot is not None:
+            click.echo(f"plot written to {plot}")
     bad = [r for r in rows if not r["identical_to_octree"]]
     if bad:
         raise VoxtoolError(f"{source or 'sample'}: {len(bad)} OctoCache configuration(s) built a map different from the octree")

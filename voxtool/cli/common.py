@@ -63,6 +63,23 @@ def warn_dropped(where, figures: dict) -> None:
         click.echo(f"voxtool: warning: {line}", err=True)
 
 
+def plot_option(what: str):
+    """--plot OUT.png: a picture of what the command measured (voxtool.plots)."""
+    return click.option("--plot", type=click.Path(path_type=Path), metavar="OUT.png",
+                        help=f"Also draw {what} as a PNG (headless matplotlib, written atomically).")
+
+
+def check_plot(plot) -> None:
+    """Refuse a --plot that cannot be written before the work starts, not after it."""
+    if plot is not None:
+        from voxtool.atomic import check_writable
+        from voxtool.errors import ParameterError
+
+        if plot.suffix.lower() != ".png":
+            raise ParameterError(f"--plot {plot}: plots are written as .png")
+        check_writable(plot)
+
+
 def cluster_options(func):
     """--workers / --scheduler: run on Dask (voxtool.cluster); neither: no Dask at all."""
     func = click.option("--scheduler", metavar="ADDRESS",

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import cluster_options, emit, emit_fleet, handle_errors, summary_rows
+from voxtool.cli.common import check_plot, cluster_options, emit, emit_fleet, handle_errors, plot_option, summary_rows
 
 
 @click.command()
@@ -19,9 +19,10 @@ from voxtool.cli.common import cluster_options, emit, emit_fleet, handle_errors,
 @click.option("--tolerance", default=0.0, show_default=True, type=float,
               help="Relative change allowed by --compare (0.01: 1 %).")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
+@plot_option("a packet log's bandwidth over time per robot (1 s windows, average) and its packet sizes")
 @cluster_options
 @handle_errors
-def stats(map_files, as_json, baseline, tolerance, progress, workers, scheduler):
+def stats(map_files, as_json, baseline, tolerance, progress, plot, workers, scheduler):
     """Statistics of a map snapshot (.vxm), a sharded map (a directory), an OctoMap .bt file, or a
     packet log (.mcap). Several files: one row each and the totals (with --workers or --scheduler,
     one Dask task each)."""
@@ -30,6 +31,11 @@ def stats(map_files, as_json, baseline, tolerance, progress, workers, scheduler)
     from voxtool.stats import COMPARED, LOG_COMPARED, compare, comparison_rows, number, regression_error
 
     dask = wanted(workers, scheduler)
+    if plot is not None and (len(map_files) > 1 or dask or map_files[0].suffix.lower() != ".mcap"):
+        from voxtool.errors import ParameterError
+
+        raise ParameterError("--plot draws the bandwidth of one packet log (.mcap), without --workers/--scheduler")
+    check_plot(plot)
     if len(map_files) > 1 or dask:
         from voxtool.errors import ParameterError
         from voxtool.fleet import run_fleet_on
@@ -41,7 +47,15 @@ def stats(map_files, as_json, baseline, tolerance, progress, workers, scheduler)
                    if "packets" in r else f"{number(r['occupied_voxels'])} occupied voxels")
         return
     map_file = map_files[0]
-    result = any_stats(map_file, progress)
+    if plot is not None:
+        from voxtool.codec.logstats import log_stats
+        from voxtool.plots import log_figure, write_plot
+
+        series = {}
+        result = log_stats(map_file, progress, series)
+        result.update(write_plot(log_figure(result, series), plot))
+    else:
+        result = any_stats(map_file, progress)
     if map_file.suffix.lower() == ".mcap":
         figures = LOG_COMPARED
         rows = [("packets", number(result["packets"])), ("bytes", number(result["bytes"])),
@@ -51,6 +65,8 @@ def stats(map_files, as_json, baseline, tolerance, progress, workers, scheduler)
                                            f"{number(r['max_Bps'])} B/s, {number(r['bytes_per_changed_voxel'])} B/changed voxel, "
                                            f"x{number(r['compression_ratio'])} compression, "
                                            f"{number(r['ratio_to_raw_sensor'] or 0)} of raw sensor B/s"))
+        if plot is not None:
+            rows.append(("plot", str(plot)))
     else:
         figures = COMPARED
         rows = summary_rows(result)

@@ -1,9 +1,13 @@
 """Packet logs: MCAP files with one channel per robot carrying voxtool packets.
 
-Schema `voxtool/MapPacket` (encoding `voxtool-packet-v1`, the bytes of formats/packet.md), topic
-`/voxtool/packets/<robot>`, log time = publish time = packet stamp. A metadata record `voxtool`
-per robot records how the packets were made (sensor model, map parameters, scheme, codec) and the
-raw sensor bytes and time span of the source, so bandwidth can be compared with what was not sent.
+A ROS 2 log (profile ros2): messages of type `voxtool_msgs/msg/MapPacket` (its ros2msg definition
+is the schema, CDR written by mcap-ros2-support), so Foxglove, rosbags and ROS 2 tools decode the
+header fields without voxtool; the field `packet` holds the packet verbatim (formats/packet.md).
+Topic `/voxtool/packets/<robot>`, log time = publish time = packet stamp. A metadata record
+`voxtool` per robot records how the packets were made (sensor model, map parameters, scheme,
+codec) and the raw sensor bytes and time span of the source, so bandwidth can be compared with
+what was not sent. Logs of voxtool 0.3 and older (schema `voxtool/MapPacket`, the packet as the
+whole message) still read.
 """
 
 from __future__ import annotations
@@ -15,36 +19,58 @@ from pathlib import Path
 from zlib import error as zlib_error
 
 from voxtool.atomic import atomic_writer
-from voxtool.codec.packet import HEADER
+from voxtool.codec.packet import CODECS, HEADER, SCHEMES
 from voxtool.errors import FormatError, mcap_problem
 
-SCHEMA_NAME = "voxtool/MapPacket"
-SCHEMA_ENCODING = "voxtool-packet-v1"
-SCHEMA_TEXT = b"voxtool map-change packet v1: 96-byte little-endian header + payload; see formats/packet.md"
+MESSAGE_TYPE = "voxtool_msgs/msg/MapPacket"
+MESSAGE_DEFINITION = """\
+# A voxtool map-change packet (formats/packet.md). The fields before `packet` repeat its header
+# so that readers without voxtool can index and plot a log; `packet` is the packet verbatim.
+string robot            # sender id (1..16 bytes)
+uint32 sequence         # per robot, from 0
+int64 stamp_ns          # scan time of the change, ns
+uint8 version           # packet format version
+uint8 kind              # 0 delta (unchanged cells allowed), 1 keyframe
+string scheme           # hilbert | nested | racer | occupied
+string codec            # none | zstd | zlib | cm1 | cm
+float64 resolution      # voxel edge, m
+float64[3] map_origin   # world position of key 0, m
+uint16[3] box_min       # first key of the changed box
+uint16[3] box_size      # voxels per axis of the box
+uint32 count            # cells or voxels the payload holds
+uint32 raw_size         # payload bytes before compression
+uint32 stored_size      # payload bytes as sent
+uint8[] packet          # 96-byte header + payload: the bytes a robot sends
+"""
+LEGACY_SCHEMA = "voxtool/MapPacket"  # voxtool <= 0.3: the packet is the whole message
 MAX_MESSAGE = 1 << 31
+
+
+def packet_message(blob: bytes) -> dict:
+    """The MapPacket fields of a packet (its header, read without checking the payload)."""
+    f = HEADER.unpack_from(blob, 0)
+    name = lambda names, i: names[i] if i < len(names) else f"unknown {i}"  # noqa: E731 (a bad packet still logs)
+    return {"robot": f[5].rstrip(b"\0").decode("utf-8", "replace"), "sequence": f[6], "stamp_ns": f[7],
+            "version": f[1], "kind": f[2], "scheme": name(SCHEMES, f[3]), "codec": name(CODECS, f[4]), "resolution": f[8],
+            "map_origin": list(f[9:12]), "box_min": list(f[12:15]), "box_size": list(f[15:18]), "count": f[18],
+            "raw_size": f[19], "stored_size": f[20], "packet": blob}
 
 
 class PacketLogWriter:
     """Write packets of one or more robots to an MCAP file, atomically (temp file + rename)."""
 
     def __init__(self, path: str | Path) -> None:
-        from mcap.writer import CompressionType, Writer
+        from mcap.writer import CompressionType
+        from mcap_ros2.writer import Writer
 
         self._ctx = atomic_writer(path)
         self._handle = self._ctx.__enter__()
         self._writer = Writer(self._handle, compression=CompressionType.NONE)  # payloads are compressed already
-        self._writer.start(profile="", library="voxtool")
-        self._schema = self._writer.register_schema(SCHEMA_NAME, SCHEMA_ENCODING, SCHEMA_TEXT)
-        self._channels: dict[str, int] = {}
-
-    def channel(self, robot: str) -> int:
-        if robot not in self._channels:
-            self._channels[robot] = self._writer.register_channel(
-                f"/voxtool/packets/{robot}", SCHEMA_ENCODING, self._schema, {"robot": robot})
-        return self._channels[robot]
+        self._schema = self._writer.register_msgdef(MESSAGE_TYPE, MESSAGE_DEFINITION)
 
     def write(self, robot: str, seq: int, stamp_ns: int, blob: bytes) -> None:
-        self._writer.add_message(self.channel(robot), stamp_ns, blob, stamp_ns, sequence=seq & 0xFFFFFFFF)
+        self._writer.write_message(f"/voxtool/packets/{robot}", self._schema, packet_message(blob), log_time=stamp_ns,
+                                   publish_time=stamp_ns, sequence=seq & 0xFFFFFFFF)
 
     def metadata(self, robot: str, info: dict) -> None:
         self._writer.add_metadata("voxtool", {"robot": robot, "info": json.dumps(info, sort_keys=True)})
@@ -86,6 +112,7 @@ def read_log(path: str | Path, handle=None) -> tuple[dict[str, dict], Messages]:
     read instead of opening `path`, which then only names the input in messages."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
 
     path = Path(path)
     if handle is None:
@@ -104,20 +131,34 @@ def read_log(path: str | Path, handle=None) -> tuple[dict[str, dict], Messages]:
             UnicodeDecodeError, OverflowError, MemoryError) as err:
         handle.close()
         raise FormatError(f"{path}: cannot be read as a packet log: {mcap_problem(err)}") from err
-    if summary is None or not any(s.name == SCHEMA_NAME for s in summary.schemas.values()):
+    names = {s.name for s in summary.schemas.values()} if summary is not None else set()
+    if not names & {MESSAGE_TYPE, LEGACY_SCHEMA}:
         handle.close()
-        raise FormatError(f"{path}: MCAP holds no '{SCHEMA_NAME}' schema (not a voxtool packet log)")
+        raise FormatError(f"{path}: MCAP holds no '{MESSAGE_TYPE}' messages (not a voxtool packet log)")
+    decode = None
+    if MESSAGE_TYPE in names:
+        schema = next(s for s in summary.schemas.values() if s.name == MESSAGE_TYPE)
+        if schema.data != MESSAGE_DEFINITION.encode():  # decode only the definition this voxtool knows
+            handle.close()
+            raise FormatError(f"{path}: its {MESSAGE_TYPE} definition is not the one this voxtool writes "
+                              "(another version's log, or a damaged schema)")
+        decode = DecoderFactory().decoder_for("cdr", schema)
 
     def messages() -> Iterator[tuple[str, int, bytes]]:
         try:
             for schema, channel, message in reader.iter_messages(log_time_order=False):
-                if schema is None or schema.name != SCHEMA_NAME:
+                if schema is None or schema.name not in (MESSAGE_TYPE, LEGACY_SCHEMA):
                     continue
-                if len(message.data) < HEADER.size or len(message.data) > MAX_MESSAGE:
-                    raise FormatError(f"{path}: message {message.sequence} on {channel.topic} has {len(message.data)} bytes")
-                yield channel.metadata.get("robot", channel.topic.rsplit("/", 1)[-1]), message.log_time, message.data
+                if schema.name == MESSAGE_TYPE:
+                    fields = decode(message.data)
+                    robot, blob = fields.robot, fields.packet
+                else:
+                    robot, blob = channel.metadata.get("robot", channel.topic.rsplit("/", 1)[-1]), message.data
+                if len(blob) < HEADER.size or len(blob) > MAX_MESSAGE:
+                    raise FormatError(f"{path}: message {message.sequence} on {channel.topic} has {len(blob)} bytes")
+                yield robot, message.log_time, blob
         except (McapError, ValueError, EOFError, AssertionError, KeyError, struct.error, UnicodeDecodeError,
-                OverflowError, zlib_error) as err:
+                OverflowError, zlib_error, IndexError, TypeError) as err:
             raise FormatError(f"{path}: cannot be read as a packet log: {mcap_problem(err)}") from err
         finally:
             handle.close()

@@ -10,9 +10,10 @@ from voxtool.codec.log import read_log
 from voxtool.codec.packet import HEADER, decode_packet
 
 
-def log_stats(path: str | Path, progress: bool | None = False) -> dict:
+def log_stats(path: str | Path, progress: bool | None = False, series: dict | None = None) -> dict:
     """Packets, bytes, average and 1-second-window maximum bandwidth per robot and in total,
-    compression ratio, bytes per changed voxel, and the ratio to the raw sensor bandwidth."""
+    compression ratio, bytes per changed voxel, and the ratio to the raw sensor bandwidth.
+    `series` (a dict) receives robot -> (packet stamps in ns, packet bytes), for `stats --plot`."""
     from voxtool.progress import track
 
     path = Path(path)
@@ -38,7 +39,10 @@ def log_stats(path: str | Path, progress: bool | None = False) -> dict:
     for robot, r in rows.items():
         m = meta.get(robot, {})
         span = _span(m, r["stamps"])
-        bw = _bandwidth(np.array(r.pop("stamps")), np.array(r.pop("sizes")), span)
+        robot_stamps, robot_sizes = np.array(r.pop("stamps"), np.int64), np.array(r.pop("sizes"), np.int64)
+        if series is not None:
+            series[robot] = (robot_stamps, robot_sizes)
+        bw = _bandwidth(robot_stamps, robot_sizes, span)
         raw_bps = m.get("raw_sensor_bytes", 0) / span if span else None
         r.update(bw)
         r["duration_s"] = round(span, 6)

@@ -1,0 +1,134 @@
+"""Plots of what a command measured (`--plot out.png`), drawn headless (matplotlib's Agg canvas,
+no pyplot) and written atomically like every output:
+
+- `stats LOG.mcap --plot`: bandwidth over time per robot (bytes in each 1 s window, with the
+  log's average as a dashed line) and the size of every packet;
+- `cache-bench --plot`: where each configuration's time goes (the OctoCache paper's decomposition:
+  ray casting, cache insert, eviction, octree update on the calling thread, final flush) and its
+  cache hit ratio;
+- `build --plot`: each scan's latency (ray casting + map update) and the map's size after it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from voxtool.io.picture import save
+
+NS = 1_000_000_000
+COLOURS = "tab10"
+
+
+def _figure(rows: int, height: float = 3.2):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(10, height * rows), dpi=120, layout="constrained")
+
+
+def _colour(i: int):
+    from matplotlib import colormaps
+
+    return colormaps[COLOURS](i % 10)
+
+
+def log_figure(stats: dict, series: dict[str, tuple[np.ndarray, np.ndarray]]):
+    """Bandwidth per robot in 1 s windows (aligned to the log's first packet, as `stats` counts
+    them per robot from its own first packet) and packet sizes, over seconds since the first packet."""
+    fig = _figure(2)
+    bw, sizes = fig.subplots(2, 1, sharex=True)
+    t0 = min(int(s.min()) for s, _ in series.values())
+    end = 0.0
+    for i, (robot, (stamps, nbytes)) in enumerate(sorted(series.items())):
+        row = stats["robots"][robot]
+        first = int(stamps.min())
+        per_second = np.bincount((stamps - first) // NS, weights=nbytes)
+        start = (first - t0) / NS + np.arange(len(per_second))
+        edges = np.append(start, start[-1] + 1)
+        colour = _colour(i)
+        bw.stairs(per_second / 1e3, edges, color=colour, linewidth=1.5,
+                  label=f"{robot}: avg {row['avg_Bps'] / 1e3:,.1f} kB/s, 1 s max {row['max_Bps'] / 1e3:,.1f} kB/s")
+        bw.axhline(row["avg_Bps"] / 1e3, color=colour, linestyle="--", linewidth=1)
+        sizes.scatter((stamps - t0) / NS, nbytes, s=8, color=colour, label=f"{robot}: {len(nbytes):,} packets")
+        end = max(end, float(edges[-1]))
+    bw.set_ylabel("bandwidth (kB/s, 1 s windows)")
+    bw.set_ylim(bottom=0)
+    bw.legend(fontsize=8, loc="upper right")
+    bw.set_title(f"{Path(stats['log']).name}: {stats['packets']:,} packets, {stats['bytes']:,} bytes "
+                 "(dashed: average over the log)", loc="left", fontsize=10)
+    sizes.set_yscale("log")
+    sizes.set_ylabel("packet size (bytes)")
+    sizes.set_xlabel("time since the first packet (s)")
+    sizes.set_xlim(0, end)
+    sizes.legend(fontsize=8, loc="upper right")
+    return fig
+
+
+# a configuration's time, in the order the paper stacks it; the row keys that hold each part
+PARTS = (("ray casting", "raycast_s"), ("cache insert", "insert_s"), ("eviction", "evict_s"),
+         ("octree update (calling thread)", "thread1_update_s"), ("final flush", "flush_s"))
+
+
+def _label(row: dict) -> str:
+    if row["backend"] == "octree":
+        return "octree"
+    return f"cache ovl{row['overlap']} tau{row['tau']} b{row['buckets']} {row['order']}"
+
+
+def cache_figure(result: dict):
+    """Stacked time per configuration (plain octree: ray casting + octree update) and hit ratio."""
+    rows = result["rows"]
+    labels = [_label(r) for r in rows]
+    fig = _figure(2, height=max(2.2, 0.45 * len(rows) + 1.2))
+    times, hits = fig.subplots(1, 2, width_ratios=(3, 1), sharey=True)
+    y = np.arange(len(rows))
+    left = np.zeros(len(rows))
+    for i, (name, key) in enumerate(PARTS):
+        part = np.array([r.get("octree_update_s" if r["backend"] == "octree" and key == "thread1_update_s" else key, 0.0)
+                         or 0.0 for r in rows])
+        times.barh(y, part, left=left, color=_colour(i), label=name)
+        left += part
+    times.scatter([r["total_s"] for r in rows], y, marker="|", s=300, color="k", label="measured total", zorder=3)
+    times.set_yticks(y, labels, fontsize=8)
+    times.invert_yaxis()
+    times.set_xlabel("time (s)")
+    times.set_title(f"{Path(result['source']).name} at {result['resolution']:g} m: where the time goes", loc="left",
+                    fontsize=10)
+    fig.legend(*times.get_legend_handles_labels(), loc="outside lower center", ncol=6, fontsize=8)
+    ratio = np.array([r.get("hit_ratio", np.nan) for r in rows], float)
+    hits.barh(y, np.nan_to_num(ratio) * 100, color=_colour(5))
+    for yi, value in zip(y, ratio):
+        hits.text(1, yi, "no cache" if np.isnan(value) else f"{value * 100:.1f} %", va="center", fontsize=7)
+    hits.set_xlim(0, 100)
+    hits.set_xlabel("cache hit ratio (%)")
+    return fig
+
+
+def build_figure(result: dict, label: str):
+    """Per-scan latency and the map's used size after each scan, over the scans."""
+    scans = result["per_scan"]
+    n = np.arange(1, len(scans["latency_ms"]) + 1)
+    fig = _figure(2)
+    latency, size = fig.subplots(2, 1, sharex=True)
+    latency.plot(n, scans["latency_ms"], marker=".", linewidth=1, color=_colour(0))
+    lat = result["scan_latency_ms"]
+    latency.axhline(lat["p50"], color="0.4", linestyle="--", linewidth=1, label=f"median {lat['p50']:.1f} ms")
+    latency.set_ylabel("scan latency (ms)\nray casting + map update")
+    latency.set_ylim(bottom=0)
+    latency.legend(fontsize=8)
+    latency.set_title(f"{label}: {result['scans']:,} scans, {result['backend']} backend, "
+                      f"{result['occupied_voxels']:,} occupied voxels at the end", loc="left", fontsize=10)
+    size.plot(n, np.array(scans["map_bytes"]) / 2**20, color=_colour(1))
+    size.set_ylabel("map size (MiB used)")
+    size.set_xlabel("scan")
+    size.set_xlim(1, max(len(n), 2))
+    size.xaxis.get_major_locator().set_params(integer=True)
+    size.set_ylim(bottom=0)
+    return fig
+
+
+def write_plot(fig, path: str | Path) -> dict:
+    """Write a plot as PNG (atomically); the figures `--json` reports about it."""
+    width, height = save(fig, Path(path))
+    return {"plot": str(path), "width": width, "height": height}
