@@ -128,6 +128,16 @@ def build_figure(result: dict, label: str):
     return fig
 
 
+def check_png(path: Path, option: str) -> None:
+    """A PNG output that cannot be written is refused before the work starts, not after it."""
+    from voxtool.atomic import check_writable
+    from voxtool.errors import ParameterError
+
+    if Path(path).suffix.lower() != ".png":
+        raise ParameterError(f"{option} {path}: written as .png")
+    check_writable(path)
+
+
 def write_plot(fig, path: str | Path) -> dict:
     """Write a plot as PNG (atomically); the figures `--json` reports about it."""
     width, height = save(fig, Path(path))

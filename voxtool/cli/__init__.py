@@ -27,6 +27,7 @@ from voxtool.cli.export import export  # noqa: E402
 from voxtool.cli.merge import merge  # noqa: E402
 from voxtool.cli.query import query  # noqa: E402
 from voxtool.cli.stats import stats  # noqa: E402
+from voxtool.cli.view import view  # noqa: E402
 
 __all__ = ["BACKEND_NAMES", "SAMPLE_DIR", "main", "run"]
 
@@ -62,7 +63,7 @@ def main() -> None:
     """
 
 
-for _command in (build, cache_bench_cmd, encode, decode, merge, query, stats, export):
+for _command in (build, cache_bench_cmd, encode, decode, merge, query, stats, export, view):
     main.add_command(_command)
 
 

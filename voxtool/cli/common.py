@@ -72,12 +72,23 @@ def plot_option(what: str):
 def check_plot(plot) -> None:
     """Refuse a --plot that cannot be written before the work starts, not after it."""
     if plot is not None:
-        from voxtool.atomic import check_writable
-        from voxtool.errors import ParameterError
+        from voxtool.plots import check_png
 
-        if plot.suffix.lower() != ".png":
-            raise ParameterError(f"--plot {plot}: plots are written as .png")
-        check_writable(plot)
+        check_png(plot, "--plot")
+
+
+def replay_for(view, period: float):
+    """The replay `--view OUT.mcap` writes (None without it), refused early if it cannot be written."""
+    if view is None:
+        return None
+    from voxtool.atomic import check_writable
+    from voxtool.codec.replay import Replay
+    from voxtool.errors import ParameterError
+
+    if view.suffix.lower() != ".mcap":
+        raise ParameterError(f"--view {view}: written as .mcap")
+    check_writable(view)
+    return Replay(view, period)
 
 
 def cluster_options(func):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors, summary_rows
+from voxtool.cli.common import emit, handle_errors, replay_for, summary_rows
 
 
 @click.command()
@@ -17,11 +17,20 @@ from voxtool.cli.common import emit, handle_errors, summary_rows
 @click.option("--relay", is_flag=True, help="Integrate 'occupied' frames into a hash map like sensor hits (receiver side).")
 @click.option("--d-inf", default=0.2, show_default=True, type=float, help="--relay: inflation radius of the receiving hash map.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
+@click.option("--view", type=click.Path(path_type=Path), metavar="OUT.mcap",
+              help="Also write the map as it grew, for Foxglove: foxglove.SceneUpdate messages over packet time, "
+                   "each robot's voxels in its own colour (voxtool/codec/replay.py).")
+@click.option("--view-period", default=1.0, show_default=True, type=click.FloatRange(min=0.0),
+              help="--view: seconds of packet time between SceneUpdates (0: one per packet).")
 @handle_errors
-def decode(log, output, as_json, voxels, relay, d_inf, progress):
+def decode(log, output, as_json, voxels, relay, d_inf, progress, view, view_period):
     """Replay a packet log into a state map (free / occupied / unknown)."""
     from voxtool.codec.fusion import fuse, packets_of, save_state_map
 
+    if relay and view is not None:
+        from voxtool.errors import ParameterError
+
+        raise ParameterError("--view replays the packets' voxel states; --relay integrates frames into a hash map instead")
     if relay:
         from voxtool.api import backend_stats
         from voxtool.codec.log import read_log
@@ -45,7 +54,8 @@ def decode(log, output, as_json, voxels, relay, d_inf, progress):
         emit(result, as_json, summary_rows(result), written=output)
         return
 
-    result = fuse([log], progress=progress)
+    replay = replay_for(view, view_period)
+    result = fuse([log], progress=progress, on_packet=replay.packet if replay else None)
     if output is not None:
         save_state_map(output, result, {"source": str(log), "packets": result.packets})
     occ = int((result.states == 1).sum())
@@ -58,5 +68,8 @@ def decode(log, output, as_json, voxels, relay, d_inf, progress):
             if voxels:
                 head["voxels"] = [[int(a), int(b), int(c), int(s)] for (a, b, c), s in zip(p.keys, p.states)]
             data["packet_headers"].append(head)
-    emit(data, as_json, [("packets", f"{result.packets:,}"), ("occupied voxels", f"{occ:,}"),
-                         ("free voxels", f"{data['free_voxels']:,}")], written=output)
+    rows = [("packets", f"{result.packets:,}"), ("occupied voxels", f"{occ:,}"), ("free voxels", f"{data['free_voxels']:,}")]
+    if replay is not None:
+        data.update(replay.write())
+        rows.append(("view", f"{data['view']} ({data['view_messages']} SceneUpdates)"))
+    emit(data, as_json, rows, written=output)

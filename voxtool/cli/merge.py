@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors
+from voxtool.cli.common import emit, handle_errors, replay_for
 
 
 @click.command()
@@ -17,13 +17,19 @@ from voxtool.cli.common import emit, handle_errors
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Seed of the loss simulation.")
 @click.option("--json", "as_json", is_flag=True, help="Print the fused map's figures, per robot, as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
+@click.option("--view", type=click.Path(path_type=Path), metavar="OUT.mcap",
+              help="Also write the map as it grew, for Foxglove: foxglove.SceneUpdate messages over packet time, "
+                   "each robot's voxels in its own colour (voxtool/codec/replay.py).")
+@click.option("--view-period", default=1.0, show_default=True, type=click.FloatRange(min=0.0),
+              help="--view: seconds of packet time between SceneUpdates (0: one per packet).")
 @handle_errors
-def merge(logs, output, extrinsic, simulate_loss, seed, as_json, progress):
+def merge(logs, output, extrinsic, simulate_loss, seed, as_json, progress, view, view_period):
     """Fuse the packet logs of several robots: every voxel takes its latest-stamped state."""
     from voxtool.codec.fusion import Extrinsic, fuse, save_state_map
 
     ext = dict(Extrinsic.parse(e) for e in extrinsic)
-    result = fuse(list(logs), ext, progress=progress)
+    replay = replay_for(view, view_period)
+    result = fuse(list(logs), ext, progress=progress, on_packet=replay.packet if replay else None)
     occ = int((result.states == 1).sum())
     out = {"packets": result.packets, "occupied_voxels": occ, "free_voxels": int(result.states.shape[0] - occ),
            "robots": result.robots}
@@ -42,4 +48,7 @@ def merge(logs, output, extrinsic, simulate_loss, seed, as_json, progress):
         sim = out["simulation"]
         rows.append(("simulation", f"loss {simulate_loss}: sent {sim['sent']}, lost {sim['lost']}, resent {sim['resent']}, "
                                    f"keyframes {sim['keyframes']}, equal to lossless: {sim['equal_to_lossless']}"))
+    if replay is not None:
+        out.update(replay.write())
+        rows.append(("view", f"{out['view']} ({out['view_messages']} SceneUpdates, colours {out['view_colours']})"))
     emit(out, as_json, rows, written=output)

@@ -84,9 +84,11 @@ def _log_packets(path: Path):
 
 
 def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, packets=None,
-         progress: bool | None = False) -> FusionResult:
+         progress: bool | None = False, on_packet=None) -> FusionResult:
     """Fuse logs (or given packets) by latest stamp; report sequence gaps per robot. `progress`:
-    a bar over the packets on stderr (None: when stderr is a terminal)."""
+    a bar over the packets on stderr (None: when stderr is a terminal). `on_packet(packet,
+    codes)`: called for every packet fused, in fusion order, with its voxels' Morton codes in the
+    fused frame (the replay of `--view`)."""
     from voxtool.progress import track
 
     extrinsics = extrinsics or {}
@@ -132,6 +134,8 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
         if p.robot in extrinsics:
             keys = extrinsics[p.robot].apply(keys, p.resolution)
         codes_parts.append(morton_encode(keys))
+        if on_packet is not None:
+            on_packet(p, codes_parts[-1])
         state_parts.append(p.states)
         rank_parts.append(np.full(keys.shape[0], rank, dtype=np.int64))
         rank += 1
