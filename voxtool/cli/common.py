@@ -77,6 +77,15 @@ def check_plot(plot) -> None:
         check_png(plot, "--plot")
 
 
+def view_options(func):
+    """--view OUT.mcap / --view-period: the replay of decode and merge (voxtool.codec.replay)."""
+    func = click.option("--view-period", default=1.0, show_default=True, type=click.FloatRange(min=0.0),
+                        help="--view: seconds of packet time between SceneUpdates (0: one per packet).")(func)
+    return click.option("--view", type=click.Path(path_type=Path), metavar="OUT.mcap",
+                        help="Also write the map as it grew, for Foxglove: foxglove.SceneUpdate messages over packet "
+                             "time, each robot's voxels in its own colour (docs/viewing.md).")(func)
+
+
 def replay_for(view, period: float):
     """The replay `--view OUT.mcap` writes (None without it), refused early if it cannot be written."""
     if view is None:

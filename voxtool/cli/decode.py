@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors, replay_for, summary_rows
+from voxtool.cli.common import emit, handle_errors, replay_for, summary_rows, view_options
 
 
 @click.command()
@@ -17,11 +17,7 @@ from voxtool.cli.common import emit, handle_errors, replay_for, summary_rows
 @click.option("--relay", is_flag=True, help="Integrate 'occupied' frames into a hash map like sensor hits (receiver side).")
 @click.option("--d-inf", default=0.2, show_default=True, type=float, help="--relay: inflation radius of the receiving hash map.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
-@click.option("--view", type=click.Path(path_type=Path), metavar="OUT.mcap",
-              help="Also write the map as it grew, for Foxglove: foxglove.SceneUpdate messages over packet time, "
-                   "each robot's voxels in its own colour (voxtool/codec/replay.py).")
-@click.option("--view-period", default=1.0, show_default=True, type=click.FloatRange(min=0.0),
-              help="--view: seconds of packet time between SceneUpdates (0: one per packet).")
+@view_options
 @handle_errors
 def decode(log, output, as_json, voxels, relay, d_inf, progress, view, view_period):
     """Replay a packet log into a state map (free / occupied / unknown)."""

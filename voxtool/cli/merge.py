@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors, replay_for
+from voxtool.cli.common import emit, handle_errors, replay_for, view_options
 
 
 @click.command()
@@ -17,11 +17,7 @@ from voxtool.cli.common import emit, handle_errors, replay_for
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Seed of the loss simulation.")
 @click.option("--json", "as_json", is_flag=True, help="Print the fused map's figures, per robot, as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
-@click.option("--view", type=click.Path(path_type=Path), metavar="OUT.mcap",
-              help="Also write the map as it grew, for Foxglove: foxglove.SceneUpdate messages over packet time, "
-                   "each robot's voxels in its own colour (voxtool/codec/replay.py).")
-@click.option("--view-period", default=1.0, show_default=True, type=click.FloatRange(min=0.0),
-              help="--view: seconds of packet time between SceneUpdates (0: one per packet).")
+@view_options
 @handle_errors
 def merge(logs, output, extrinsic, simulate_loss, seed, as_json, progress, view, view_period):
     """Fuse the packet logs of several robots: every voxel takes its latest-stamped state."""
