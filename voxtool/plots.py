@@ -27,10 +27,11 @@ def _figure(rows: int, height: float = 3.2):
     return Figure(figsize=(10, height * rows), dpi=120, layout="constrained")
 
 
-def _colour(i: int):
+def series_colour(i: int) -> tuple[float, float, float]:
+    """The i-th series' colour (RGB, 0..1): plots and the replay's robots share it."""
     from matplotlib import colormaps
 
-    return colormaps[COLOURS](i % 10)
+    return tuple(float(c) for c in colormaps[COLOURS](i % 10)[:3])
 
 
 def log_figure(stats: dict, series: dict[str, tuple[np.ndarray, np.ndarray]]):
@@ -46,7 +47,7 @@ def log_figure(stats: dict, series: dict[str, tuple[np.ndarray, np.ndarray]]):
         per_second = np.bincount((stamps - first) // NS, weights=nbytes)
         start = (first - t0) / NS + np.arange(len(per_second))
         edges = np.append(start, start[-1] + 1)
-        colour = _colour(i)
+        colour = series_colour(i)
         bw.stairs(per_second / 1e3, edges, color=colour, linewidth=1.5,
                   label=f"{robot}: avg {row['avg_Bps'] / 1e3:,.1f} kB/s, 1 s max {row['max_Bps'] / 1e3:,.1f} kB/s")
         bw.axhline(row["avg_Bps"] / 1e3, color=colour, linestyle="--", linewidth=1)
@@ -87,7 +88,7 @@ def cache_figure(result: dict):
     for i, (name, key) in enumerate(PARTS):
         part = np.array([r.get("octree_update_s" if r["backend"] == "octree" and key == "thread1_update_s" else key, 0.0)
                          or 0.0 for r in rows])
-        times.barh(y, part, left=left, color=_colour(i), label=name)
+        times.barh(y, part, left=left, color=series_colour(i), label=name)
         left += part
     times.scatter([r["total_s"] for r in rows], y, marker="|", s=300, color="k", label="measured total", zorder=3)
     times.set_yticks(y, labels, fontsize=8)
@@ -97,7 +98,7 @@ def cache_figure(result: dict):
                     fontsize=10)
     fig.legend(*times.get_legend_handles_labels(), loc="outside lower center", ncol=6, fontsize=8)
     ratio = np.array([r.get("hit_ratio", np.nan) for r in rows], float)
-    hits.barh(y, np.nan_to_num(ratio) * 100, color=_colour(5))
+    hits.barh(y, np.nan_to_num(ratio) * 100, color=series_colour(5))
     for yi, value in zip(y, ratio):
         hits.text(1, yi, "no cache" if np.isnan(value) else f"{value * 100:.1f} %", va="center", fontsize=7)
     hits.set_xlim(0, 100)
@@ -111,7 +112,7 @@ def build_figure(result: dict, label: str):
     n = np.arange(1, len(scans["latency_ms"]) + 1)
     fig = _figure(2)
     latency, size = fig.subplots(2, 1, sharex=True)
-    latency.plot(n, scans["latency_ms"], marker=".", linewidth=1, color=_colour(0))
+    latency.plot(n, scans["latency_ms"], marker=".", linewidth=1, color=series_colour(0))
     lat = result["scan_latency_ms"]
     latency.axhline(lat["p50"], color="0.4", linestyle="--", linewidth=1, label=f"median {lat['p50']:.1f} ms")
     latency.set_ylabel("scan latency (ms)\nray casting + map update")
@@ -119,7 +120,7 @@ def build_figure(result: dict, label: str):
     latency.legend(fontsize=8)
     latency.set_title(f"{label}: {result['scans']:,} scans, {result['backend']} backend, "
                       f"{result['occupied_voxels']:,} occupied voxels at the end", loc="left", fontsize=10)
-    size.plot(n, np.array(scans["map_bytes"]) / 2**20, color=_colour(1))
+    size.plot(n, np.array(scans["map_bytes"]) / 2**20, color=series_colour(1))
     size.set_ylabel("map size (MiB used)")
     size.set_xlabel("scan")
     size.set_xlim(1, max(len(n), 2))

@@ -17,6 +17,7 @@ import numpy as np
 
 from voxtool.codec.packet import OCCUPIED
 from voxtool.keys import TREE_MAX_VAL, morton_decode
+from voxtool.plots import series_colour
 
 TOPIC = "/voxtool/fusion"
 BLOCK_BITS = 12  # 16^3 voxels: a block is the unit a message re-sends
@@ -76,7 +77,7 @@ class Replay:
         shown = set()
         for owner, robot in enumerate(self.robots):
             mine = owners == owner
-            rgba = (*_colour(owner), 1.0)
+            rgba = (*series_colour(owner), 1.0)
             for block in np.unique(block_of[mine]):
                 sel = mine & (block_of == block)
                 entity_id = f"{robot}/{int(block):x}"
@@ -113,10 +114,5 @@ class Replay:
                 writer.add_message(channel, stamp, data, stamp, sequence=seq)
             writer.finish()
         return {"view": str(self.path), "view_messages": len(self.messages),
-                "view_colours": {robot: to_hex(_colour(i)) for i, robot in enumerate(self.robots)}}
+                "view_colours": {robot: to_hex(series_colour(i)) for i, robot in enumerate(self.robots)}}
 
-
-def _colour(i: int) -> tuple[float, float, float]:
-    from matplotlib import colormaps
-
-    return tuple(float(c) for c in colormaps["tab10"](i % 10)[:3])
