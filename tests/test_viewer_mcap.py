@@ -71,9 +71,16 @@ def test_map_mcap_scene_and_octomap_topics(sample_map, tmp_path):
     assert np.array_equal(voxels(morton_encode(lo_keys), depths), occ)
     tree = max_likelihood(load_leaves(path)[0], thr)
     assert len(entity.cubes) == int((tree.values > 0).sum())
-    z = centres[:, 2]  # coloured by height: the highest cube is the reddest
-    reds = np.array([c.color.r for c in entity.cubes])
-    assert reds[np.argmax(z)] == pytest.approx(1.0) and reds[np.argmin(z)] == pytest.approx(0.0)
+    # coloured by height on the pictures' colour map: the lowest cube at its start, the highest at its end
+    from matplotlib import colormaps
+
+    from voxtool.io.picture import COLORMAP
+
+    z = centres[:, 2]
+    rgb = np.array([(c.color.r, c.color.g, c.color.b) for c in entity.cubes])
+    ends = colormaps[COLORMAP]([0.0, 1.0])[:, :3]
+    assert np.allclose(rgb[np.argmin(z)], ends[0], atol=1e-6) and np.allclose(rgb[np.argmax(z)], ends[1], atol=1e-6)
+    assert (np.diff(rgb[np.argsort(z, kind="stable")][:, 1]) >= -1e-6).all()  # viridis: green rises with height
     (decoded,) = ros
     msg = decoded.decoded_message
     assert decoded.schema.name == "octomap_msgs/msg/Octomap" and decoded.schema.encoding == "ros2msg"

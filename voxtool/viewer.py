@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from voxtool.errors import ParameterError, VoxtoolError
-from voxtool.io.picture import COLORMAP, slice_layer
+from voxtool.io.picture import COLORMAP, height_colours, slice_layer
 from voxtool.keys import TREE_MAX_VAL, expand_leaves, keys_to_coords, leaf_edge, morton_decode
 
 MAX_FREE_CELLS = 1_000_000
@@ -117,13 +117,6 @@ def load_scene(path: str | Path, progress: bool | None = False) -> Scene:
 
     leaves, resolution, threshold, _ = load_leaves(path)
     return scene_of([leaves], resolution, threshold)
-
-
-def height_colours(z: np.ndarray, z_range: tuple[float, float]) -> np.ndarray:
-    from matplotlib import colormaps
-
-    lo, hi = z_range
-    return colormaps[COLORMAP]((z - lo) / max(hi - lo, 1e-9))[:, :3]
 
 
 def geometries(scene: Scene, show_free: bool, layer: int | None) -> list:

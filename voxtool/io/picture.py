@@ -31,6 +31,15 @@ COLORMAP = "viridis"
 MAX_SIDE = 1600  # raster pixels on the longer side: 2^k voxels per pixel above that
 
 
+def height_colours(z: np.ndarray, z_range: tuple[float, float] | None = None) -> np.ndarray:
+    """RGB in 0..1 of heights on COLORMAP, over `z_range` (default: the heights' own range); the
+    one height colouring of pictures, the viewer and the Foxglove scene."""
+    from matplotlib import colormaps
+
+    lo, hi = z_range if z_range is not None else ((float(z.min()), float(z.max())) if z.size else (0.0, 1.0))
+    return colormaps[COLORMAP]((z - lo) / max(hi - lo, 1e-9))[:, :3]
+
+
 def _extent(leaves: Leaves) -> tuple[np.ndarray, np.ndarray]:
     """First and last key (per axis) of every leaf."""
     lo = morton_decode(leaves.codes).astype(np.int64)

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from voxtool.atomic import atomic_writer
+from voxtool.io.picture import height_colours
 from voxtool.keys import TREE_MAX_VAL, leaf_edge, morton_decode
 from voxtool.maps.base import Leaves
 
@@ -36,12 +37,6 @@ MSG: builtin_interfaces/Time
 int32 sec
 uint32 nanosec
 """
-
-
-def height_colours(z: np.ndarray) -> np.ndarray:
-    """RGB in 0..1 by height: blue (lowest) through green to red (highest)."""
-    t = (z - z.min()) / max(float(z.max() - z.min()), 1e-9) if z.size else z
-    return np.column_stack([np.clip(2 * t - 1, 0, 1), 1 - np.abs(2 * t - 1), np.clip(1 - 2 * t, 0, 1)])
 
 
 def leaf_cubes(leaves: Leaves, resolution: float) -> tuple[np.ndarray, np.ndarray]:
