@@ -79,13 +79,15 @@ def odom_msg(ns: int, t, q_wxyz) -> dict:
 
 
 def write_mcap(path, scans, mode: str = "tf", cloud_overrides: dict | None = None, skip_tf: bool = False,
-               stamps_descending: bool = False) -> None:
+               stamps_descending: bool = False, chunk_size: int = 1 << 20,
+               cloud_log_times: list[int] | None = None) -> None:
     """scans: [(sensor points, origin, q_wxyz)]. mode 'tf': map->odom (identity) ->lidar chain;
-    'odom': an Odometry topic /odom gives the lidar pose; 'pose': a PoseStamped topic /pose."""
+    'odom': an Odometry topic /odom gives the lidar pose; 'pose': a PoseStamped topic /pose.
+    cloud_log_times: the clouds' MCAP log times (default: their header stamps)."""
     from mcap_ros2.writer import Writer
 
     with open(path, "wb") as f:
-        w = Writer(f)
+        w = Writer(f, chunk_size=chunk_size)
         s_cloud = w.register_msgdef("sensor_msgs/msg/PointCloud2", POINTCLOUD2)
         s_tf = w.register_msgdef("tf2_msgs/msg/TFMessage", TFMESSAGE)
         s_odom = w.register_msgdef("nav_msgs/msg/Odometry", ODOMETRY)
@@ -105,7 +107,8 @@ def write_mcap(path, scans, mode: str = "tf", cloud_overrides: dict | None = Non
             msg = cloud_msg(pts, ns, "lidar")
             if cloud_overrides and i == 0:
                 msg.update(cloud_overrides)
-            w.write_message("/points", s_cloud, msg, ns, ns)
+            log_ns = cloud_log_times[i] if cloud_log_times is not None else ns
+            w.write_message("/points", s_cloud, msg, log_ns, log_ns)
         w.finish()
 
 

@@ -116,6 +116,31 @@ def test_slicing_start_stop_every(tmp_path, scans):
     assert [s.index for s in stream.scans] == [1, 3]
 
 
+@pytest.mark.parametrize("mode,chunk,ties", [("tf", 1 << 20, False), ("odom", 1 << 20, False), ("tf", 1, False),
+                                              ("odom", 1, True)])
+def test_a_sliced_mcap_gives_the_whole_reads_scans(tmp_path, scans, mode, chunk, ties):
+    """Slices start at the chunk the message index points to and reuse the file's poses: each
+    scan is still the one the whole read gives at that index (points, pose, stamp), with one
+    message per chunk, with clouds sharing a log time, and from a second open of the file."""
+    path = tmp_path / "s.mcap"
+    log_times = [1_000_000_000 + (i // 2) * 200_000_000 for i in range(len(scans))] if ties else None
+    write_mcap(path, scans, mode, chunk_size=chunk, cloud_log_times=log_times)
+    pose_topic = "/odom" if mode == "odom" else None
+    whole = list(open_source(path, SourceOptions(pose_topic=pose_topic)).scans)
+    assert len(whole) == len(scans) >= 4
+    for start, stop, every in ((1, None, 2), (2, 3, 1), (0, None, 3), (3, None, 1)):
+        got = list(open_source(path, SourceOptions(start=start, stop=stop, every=every, pose_topic=pose_topic)).scans)
+        want = whole[start:stop:every]
+        assert [s.index for s in got] == [s.index for s in want] and len(got) > 0
+        for a, b in zip(got, want):
+            assert np.array_equal(a.points, b.points) and np.array_equal(a.origin, b.origin) and a.stamp_ns == b.stamp_ns
+    # the same path rewritten with other poses (same size): the new poses, not the remembered ones
+    write_mcap(path, [(pts, (o[0] + 1.0, *o[1:]), q) for pts, o, q in scans], mode, chunk_size=chunk,
+               cloud_log_times=log_times)
+    moved = list(open_source(path, SourceOptions(start=1, pose_topic=pose_topic)).scans)
+    assert np.allclose([s.origin[0] for s in moved], [s.origin[0] + 1.0 for s in whole[1:]])
+
+
 @pytest.mark.parametrize("kind", ["pcd", "mcap", "graph"])
 def test_a_slice_that_selects_no_scan_is_an_error(tmp_path, scans, kind):
     """Slicing past the end gives a clear error naming the source, not an empty map."""
@@ -196,7 +221,8 @@ def test_rosbag2_written_mcap_decodes(shared_data):
     src = McapCloudSource(shared_data / "mcap_format_fixtures" / "truck_icp_test_default_conf_0.mcap",
                           "cloud_2", "test", None)
     assert src.count == 1
-    points, pose, stamp, _ = next(src.scans())
+    index, points, pose, stamp, _ = next(src.scans())
+    assert index == 0
     assert points.shape == (34894, 3) and pose.is_identity() and stamp == 0
 
 

@@ -152,7 +152,8 @@ def distributed_build(client, sources: list[str], options: SourceOptions, params
 
     t0 = time.perf_counter()
     tag = f"voxtool-{uuid.uuid4().hex[:8]}"  # keys unique to this build (a client may run several)
-    workers = max(1, len(client.scheduler_info(n_workers=-1)["workers"]))
+    addresses = sorted(client.scheduler_info(n_workers=-1)["workers"])
+    workers = max(1, len(addresses))
     partitions = partitions or 2 * workers
     streams = [open_source(s, options) for s in sources]  # checks every source before any task
     if len(sources) == 1 and streams[0].count is not None:
@@ -161,7 +162,12 @@ def distributed_build(client, sources: list[str], options: SourceOptions, params
         stamp_futures = [client.submit(scan_stamps, s, options, pure=False) for s in sources]
         order = order_scans(gather_all(client, stamp_futures, "plan", progress))
     batches = batches_of(order, workers)
-    state = [client.submit(new_partition, shard_depth, sensor, key=f"{tag}-partition-0-{p}") for p in range(partitions)]
+    # each partition's chain prefers one worker, so its growing state stays put and only the small
+    # pieces travel (a loose preference: Dask still moves or recomputes it when that worker is gone)
+    home = [{"workers": [addresses[p % len(addresses)]], "allow_other_workers": True} if addresses else {}
+            for p in range(partitions)]
+    state = [client.submit(new_partition, shard_depth, sensor, key=f"{tag}-partition-0-{p}", **home[p])
+             for p in range(partitions)]
     casts = []
     for b, picks in enumerate(batches):
         cast = client.submit(cast_batch, sources, options, params, picks, partitions, shard_depth,
@@ -169,7 +175,7 @@ def distributed_build(client, sources: list[str], options: SourceOptions, params
         casts.append(cast)
         for p in range(partitions):
             piece = client.submit(getitem, cast, p, key=f"{tag}-piece-{b}-{p}")
-            state[p] = client.submit(advance, state[p], piece, key=f"{tag}-partition-{b + 1}-{p}")
+            state[p] = client.submit(advance, state[p], piece, key=f"{tag}-partition-{b + 1}-{p}", **home[p])
     counters = [client.submit(getitem, c, partitions, key=f"{tag}-counts-{i}") for i, c in enumerate(casts)]
     del casts  # the pieces hold what the chains need; the casts' results are freed once split
     if sharded_dir is not None:

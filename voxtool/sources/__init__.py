@@ -144,7 +144,7 @@ def _open_mcap(path: Path, options: SourceOptions) -> ScanStream:
     src = McapCloudSource(path, options.topic, options.world_frame, options.pose_topic)
 
     def scans() -> Iterator[Scan]:
-        for i, (points, pose, stamp, nbytes) in islice(enumerate(src.scans()), options.start, options.stop, options.every):
+        for i, points, pose, stamp, nbytes in src.scans(options.start, options.stop, options.every):
             yield make_scan(points, pose, i, stamp, f"{path}#{i}", nbytes, options)
 
     count = _selected(path, src.count, options) if src.count is not None else None

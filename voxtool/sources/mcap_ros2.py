@@ -3,6 +3,7 @@ from a nav_msgs/msg/Odometry or geometry_msgs/msg/PoseStamped topic. No ROS inst
 
 from __future__ import annotations
 
+import os
 from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
@@ -38,6 +39,9 @@ def _pose_of(translation, rotation) -> Pose:
     return Pose.from_quat((translation.x, translation.y, translation.z), rotation.w, rotation.x, rotation.y, rotation.z)
 
 
+_POSES: dict[tuple, tuple] = {}  # the last files' poses (insertion order: the oldest goes first)
+
+
 class StampedPoses:
     """Time series of one transform, interpolated (linear + slerp) at a query stamp."""
 
@@ -45,16 +49,20 @@ class StampedPoses:
         self.stamps: list[int] = []
         self.poses: list[Pose] = []
         self.static = False
+        self._sorted: np.ndarray | None = None  # the stamps as an array, made on the first lookup
 
     def add(self, stamp: int, pose: Pose) -> None:
         self.stamps.append(stamp)
         self.poses.append(pose)
+        self._sorted = None
 
     def at(self, stamp: int) -> Pose | None:
         if self.static:
             return self.poses[-1]
         s = self.stamps
-        i = int(np.searchsorted(s, stamp))
+        if self._sorted is None:
+            self._sorted = np.asarray(s, dtype=np.int64)
+        i = int(np.searchsorted(self._sorted, stamp))
         if i < len(s) and s[i] == stamp:
             return self.poses[i]
         if i == 0:
@@ -108,7 +116,8 @@ class McapCloudSource:
         self.pose_topic = pose_topic
         try:
             self._handle = open(self.path, "rb")
-            self._reader = make_reader(self._handle, decoder_factories=[_decoder_factory()], validate_crcs=True)
+            self._decoders = _decoder_factory()
+            self._reader = make_reader(self._handle, decoder_factories=[self._decoders], validate_crcs=True)
             summary = self._reader.get_summary()
         except OSError as err:
             raise SourceError(f"{self.path}: cannot read: {err.strerror}") from err
@@ -136,7 +145,19 @@ class McapCloudSource:
         self._sensor_poses: StampedPoses | None = None
 
     def _load_poses(self) -> None:
+        """The sensor poses (--pose-topic) or the /tf edges, read once per process and file: a
+        Dask worker that reads several batches of one bag reads its transforms once."""
+        st = os.fstat(self._handle.fileno())  # the file being read, even if the path was replaced since
+        key = (str(self.path.resolve()), st.st_size, st.st_mtime_ns, self.pose_topic, tuple(self._tf_topics))
+        if key in _POSES:
+            self._sensor_poses, self._edges = _POSES[key]
+            return
+        self._read_poses()
+        _POSES[key] = (self._sensor_poses, self._edges)
+        while len(_POSES) > 4:
+            _POSES.pop(next(iter(_POSES)))
 
+    def _read_poses(self) -> None:
         try:
             if self.pose_topic is not None:
                 series = StampedPoses()
@@ -212,12 +233,56 @@ class McapCloudSource:
             node = a
         return pose
 
-    def scans(self) -> Iterator[tuple[np.ndarray, Pose, int, int]]:
+    def _log_times(self) -> np.ndarray | None:
+        """Sorted log times of the cloud topic's messages, from the message index records the
+        summary points to (no chunk is decompressed); None when the file has no usable index."""
+        import io
 
-        self._load_poses()
-        index = 0
+        from mcap.data_stream import ReadDataStream
+        from mcap.records import MessageIndex
+
+        summary = self._reader.get_summary()
+        channel = next(cid for cid, c in summary.channels.items() if c.topic == self.topic)
+        times: list[int] = []
         try:
-            for _, _, message, msg in self._reader.iter_decoded_messages(topics=[self.topic], log_time_order=True):
+            for chunk in summary.chunk_indexes:
+                offset = chunk.message_index_offsets.get(channel)
+                if offset is None:
+                    continue
+                self._handle.seek(offset + 1 + 8, io.SEEK_SET)  # past the record's opcode and length
+                times.extend(t for t, _ in MessageIndex.read(ReadDataStream(self._handle)).records)
+        except _decode_errors():
+            return None
+        if not summary.chunk_indexes or (self.count is not None and len(times) != self.count):
+            return None  # no index, or one that does not cover the topic: read from the start
+        return np.sort(np.asarray(times, dtype=np.int64), kind="stable")
+
+    def scans(self, start: int = 0, stop: int | None = None, every: int = 1) -> Iterator[tuple[int, np.ndarray, Pose, int, int]]:
+        """(index, points, pose, stamp, bytes) of the cloud messages start, start + every, ...
+        before stop. Reading starts at the chunk holding message `start` (found by the file's
+        message index), so a Dask task that reads scans 2000..2007 of a bag does not read the
+        2000 before; without an index they are read but not decoded."""
+        self._load_poses()
+        decoders: dict[int, object] = {}
+        index, starting_at = 0, None
+        times = self._log_times() if start > 0 else None
+        if times is not None and start < len(times):
+            starting_at = int(times[start])
+            index = int(np.searchsorted(times, starting_at, side="left"))  # messages before that log time
+        try:
+            for schema, channel, message in self._reader.iter_messages(topics=[self.topic], log_time_order=True,
+                                                                       starting_at=starting_at):
+                if stop is not None and index >= stop:
+                    return
+                if index < start or (index - start) % every:
+                    index += 1
+                    continue
+                if schema.id not in decoders:
+                    decoders[schema.id] = self._decoders.decoder_for(channel.message_encoding, schema)
+                    if decoders[schema.id] is None:
+                        raise SourceError(f"{self.path}: '{self.topic}' is encoded as '{channel.message_encoding}', "
+                                          "not ROS 2 CDR (cdr)")
+                msg = decoders[schema.id](message.data)
                 points = decode_pointcloud2(self.path, msg, index)
                 stamp = _stamp(msg.header)
                 if self._sensor_poses is not None:
@@ -226,7 +291,7 @@ class McapCloudSource:
                         raise SourceError(f"{self.path}: pose topic '{self.pose_topic}' has no pose at {stamp} ns")
                 else:
                     pose = self._chain(msg.header.frame_id.lstrip("/"), stamp)
-                yield points, pose, stamp, len(message.data)
+                yield index, points, pose, stamp, len(message.data)
                 index += 1
         except _decode_errors() as err:
             raise SourceError(f"{self.path}: cannot read message {index} of '{self.topic}': {mcap_problem(err)}") from err
