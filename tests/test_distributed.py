@@ -19,7 +19,7 @@ from conftest import cli
 
 from voxtool.api import build_map
 from voxtool.config import MapParams, SensorModel
-from voxtool.distbuild import distributed_build, order_scans, partition_of
+from voxtool.distbuild import distributed_build, order_scans, partition_of, split_by_partition
 from voxtool.errors import FormatError
 from voxtool.io import sharded
 from voxtool.io.mapfile import load_map
@@ -65,6 +65,21 @@ def test_partitions_hold_whole_shards_and_spread_them():
     # one partition per shard, whatever voxel of it is asked
     assert np.array_equal(partition_of(prefix << 18, 10, 7), part)
     assert np.bincount(part, minlength=7).min() > 50_000 / 7 * 0.8
+
+
+@pytest.mark.parametrize("depth,partitions", [(8, 1), (10, 3), (13, 16)])
+def test_a_scan_splits_into_partitions_in_its_order(depth, partitions):
+    """The run-by-run split equals the brute-force one: each update to its shard's partition,
+    in the scan's (Morton) order, occupied and free updates of a voxel kept apart."""
+    rng = np.random.default_rng(depth)
+    codes = np.sort(rng.integers(0, 1 << 40, 60_000))
+    updates = np.sort(np.concatenate([codes << 1, (codes[:3_000] << 1) | 1]))
+    pieces = split_by_partition(updates, depth, partitions)
+    owner = partition_of(updates >> 1, depth, partitions)
+    for p in range(partitions):
+        assert np.array_equal(pieces[p], updates[owner == p])
+    assert sum(len(x) for x in pieces) == len(updates)
+    assert [len(x) for x in split_by_partition(updates[:0], depth, partitions)] == [0] * partitions
 
 
 def test_one_map_from_workers_equals_the_single_process_map(client, tmp_path):

@@ -61,16 +61,38 @@ def order_scans(stamps: list[np.ndarray]) -> list[tuple[int, int]]:
     return list(zip(src[order].tolist(), pos[order].tolist()))
 
 
+def split_by_partition(updates: np.ndarray, shard_depth: int, partitions: int) -> list[np.ndarray]:
+    """A scan's Morton-sorted updates (code << 1 | occupied) cut into its partitions' slices, each
+    in the scan's order. A shard's updates are one run of the sorted array, so runs are cut where
+    the shard prefix changes: no per-update partition array, no sort (a kaist03 scan at 0.1 m is
+    5.7 million updates; the whole-array argsort this replaces held four copies of them)."""
+    if updates.shape[0] == 0:
+        return [updates[:0]] * partitions
+    prefix = updates >> np.int64(1 + 3 * (16 - shard_depth))
+    starts = np.flatnonzero(prefix[1:] != prefix[:-1]) + 1
+    del prefix
+    starts = np.concatenate([[0], starts])
+    ends = np.append(starts[1:], updates.shape[0])
+    owner = partition_of(updates[starts] >> 1, shard_depth, partitions)
+    pieces = []
+    for p in range(partitions):
+        mine = np.flatnonzero(owner == p)
+        pieces.append(np.concatenate([updates[a:b] for a, b in zip(starts[mine].tolist(), ends[mine].tolist())])
+                      if mine.size else updates[:0])
+    return pieces
+
+
 def cast_batch(sources: list[str], options: SourceOptions, params: MapParams, picks: list[tuple[int, int]],
                partitions: int, shard_depth: int, threads: int = 1) -> tuple:
     """Ray casting of a batch of scans ((source, position) in map order): per partition, the
-    batch's updates (code << 1 | occupied) in scan order; and the batch's counters."""
+    batch's updates (code << 1 | occupied) in scan order; and the batch's counters. Each scan is
+    split as soon as it is cast, so a task holds its output plus one scan's updates."""
     from voxtool.maps.octree import scan_bricks_updates
 
     wanted: dict[int, list[int]] = {}
     for s, p in picks:
         wanted.setdefault(s, []).append(p)
-    by_pick: dict[tuple[int, int], np.ndarray] = {}
+    by_pick: dict[tuple[int, int], list[np.ndarray]] = {}
     counts = dict.fromkeys(COUNTERS, 0)
     stamps = []
     t0 = time.perf_counter()
@@ -82,7 +104,7 @@ def cast_batch(sources: list[str], options: SourceOptions, params: MapParams, pi
             if first + offset not in keep:
                 continue
             packed, steps, merged, _ = scan_bricks_updates(scan, params, threads)
-            by_pick[(s, first + offset)] = packed
+            by_pick[(s, first + offset)] = split_by_partition(packed, shard_depth, partitions)
             stamps.append(scan.stamp_ns)
             counts["scans"] += 1
             counts["points"] += scan.points_read
@@ -94,14 +116,16 @@ def cast_batch(sources: list[str], options: SourceOptions, params: MapParams, pi
             counts["ray_steps"] += steps
             counts["rays"] += int(scan.points.shape[0])
             counts["merged_rays"] += merged
+            del packed
     missing = [pk for pk in picks if pk not in by_pick]
     if missing:
         raise RuntimeError(f"scan {missing[0]} was not read (the source changed while the map was built?)")
-    updates = np.concatenate([by_pick[pk] for pk in picks]) if picks else np.zeros(0, np.int64)
-    part = partition_of(updates >> 1, shard_depth, partitions)
-    order = np.argsort(part, kind="stable")  # stable: each partition keeps the scan order
-    bounds = np.searchsorted(part[order], np.arange(partitions + 1))
-    pieces = [updates[order[bounds[p]: bounds[p + 1]]] for p in range(partitions)]
+    pieces = []
+    for p in range(partitions):  # scan order inside each partition: the picks' order
+        parts = [by_pick[pk][p] for pk in picks]
+        pieces.append(np.concatenate(parts) if parts else np.zeros(0, np.int64))
+        for pk in picks:
+            by_pick[pk][p] = None  # freed as the partition's piece is made
     counts["raycast_s"] = time.perf_counter() - t0
     counts["stamps"] = (min(stamps), max(stamps)) if stamps else None
     return (*pieces, counts)
@@ -174,8 +198,11 @@ def distributed_build(client, sources: list[str], options: SourceOptions, params
                              key=f"{tag}-cast-{b}")
         casts.append(cast)
         for p in range(partitions):
-            piece = client.submit(getitem, cast, p, key=f"{tag}-piece-{b}-{p}")
-            state[p] = client.submit(advance, state[p], piece, key=f"{tag}-partition-{b + 1}-{p}", **home[p])
+            # consuming a cast's pieces comes before the next cast (higher priority): pieces do not
+            # pile up in workers' memory while the chains fall behind
+            piece = client.submit(getitem, cast, p, key=f"{tag}-piece-{b}-{p}", priority=1)
+            state[p] = client.submit(advance, state[p], piece, key=f"{tag}-partition-{b + 1}-{p}", priority=1,
+                                     **home[p])
     counters = [client.submit(getitem, c, partitions, key=f"{tag}-counts-{i}") for i, c in enumerate(casts)]
     del casts  # the pieces hold what the chains need; the casts' results are freed once split
     if sharded_dir is not None:
