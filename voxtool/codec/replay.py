@@ -28,9 +28,10 @@ class Replay:
 
     def __init__(self, path: Path, period_s: float = 1.0) -> None:
         self.path, self.period_ns = Path(path), int(period_s * 1e9)
-        self.codes = np.zeros(0, np.int64)  # sorted Morton codes of voxels a packet set
-        self.states = np.zeros(0, np.uint8)
-        self.owners = np.zeros(0, np.int16)  # index into self.robots
+        # only the occupied voxels are drawn, so only they are kept: a later free or unknown
+        # state of a voxel removes it (millions of free voxels would make every merge slow)
+        self.codes = np.zeros(0, np.int64)  # sorted Morton codes of the voxels occupied now
+        self.owners = np.zeros(0, np.int16)  # the robot (index into self.robots) that set each
         self.robots: list[str] = []
         self.dirty: set[int] = set()
         self.drawn: set[str] = set()  # entity ids on screen
@@ -51,15 +52,24 @@ class Replay:
             self.robots.append(packet.robot)
         owner = self.robots.index(packet.robot)
         # the packet's voxels replace earlier states of the same voxels (latest wins)
-        codes_all = np.concatenate([self.codes, codes])
-        states_all = np.concatenate([self.states, packet.states])
-        owners_all = np.concatenate([self.owners, np.full(len(codes), owner, np.int16)])
-        order = np.argsort(codes_all, kind="stable")
-        codes_all = codes_all[order]
-        last = np.ones(len(codes_all), bool)
-        last[:-1] = codes_all[1:] != codes_all[:-1]
-        self.codes, self.states, self.owners = codes_all[last], states_all[order][last], owners_all[order][last]
-        self.dirty.update(np.unique(codes >> BLOCK_BITS).tolist())
+        order = np.argsort(codes, kind="stable")
+        new_codes, new_states = codes[order], packet.states[order]
+        last = np.ones(len(new_codes), bool)
+        last[:-1] = new_codes[1:] != new_codes[:-1]  # a voxel twice in one packet: its last state
+        new_codes, occupied = new_codes[last], new_states[last] == OCCUPIED
+        at = np.searchsorted(self.codes, new_codes)
+        known = at < len(self.codes)
+        known[known] = self.codes[at[known]] == new_codes[known]
+        self.owners[at[known & occupied]] = owner
+        gone = at[known & ~occupied]
+        if gone.size:
+            self.codes, self.owners = np.delete(self.codes, gone), np.delete(self.owners, gone)
+        fresh = new_codes[~known & occupied]
+        if fresh.size:
+            where = np.searchsorted(self.codes, fresh)
+            self.codes = np.insert(self.codes, where, fresh)
+            self.owners = np.insert(self.owners, where, np.int16(owner))
+        self.dirty.update(np.unique(new_codes >> BLOCK_BITS).tolist())
 
     def _emit(self) -> None:
         from foxglove_schemas_protobuf.SceneEntityDeletion_pb2 import SceneEntityDeletion
@@ -69,21 +79,27 @@ class Replay:
 
         update = SceneUpdate()
         blocks = np.array(sorted(self.dirty), np.int64)
-        inside = np.isin(self.codes >> BLOCK_BITS, blocks) & (self.states == OCCUPIED)
+        # a block's voxels are one run of the sorted codes (a block is a Morton prefix)
+        lo = np.searchsorted(self.codes, blocks << BLOCK_BITS)
+        hi = np.searchsorted(self.codes, (blocks + 1) << BLOCK_BITS)
+        inside = np.concatenate([np.arange(a, b) for a, b in zip(lo.tolist(), hi.tolist())] or [np.zeros(0, np.int64)])
         codes, owners = self.codes[inside], self.owners[inside]
         keys = morton_decode(codes).astype(np.float64)
         centres = (keys - TREE_MAX_VAL + 0.5) * self.resolution
         block_of = codes >> BLOCK_BITS
         shown = set()
-        for owner, robot in enumerate(self.robots):
-            mine = owners == owner
+        # one entity per (robot, block): runs of the voxels sorted by owner, then block
+        order = np.lexsort((block_of, owners))
+        pairs = np.column_stack([owners[order], block_of[order]])
+        starts = np.flatnonzero(np.r_[True, (pairs[1:] != pairs[:-1]).any(axis=1)]) if len(order) else np.zeros(0, int)
+        for a, b in zip(starts.tolist(), np.append(starts[1:], len(order)).tolist()):
+            owner, block = int(pairs[a, 0]), int(pairs[a, 1])
+            sel = order[a:b]
+            entity_id = f"{self.robots[owner]}/{block:x}"
             rgba = (*series_colour(owner), 1.0)
-            for block in np.unique(block_of[mine]):
-                sel = mine & (block_of == block)
-                entity_id = f"{robot}/{int(block):x}"
-                update.entities.append(scene_entity(entity_id, centres[sel], np.full(int(sel.sum()), self.resolution),
-                                                    np.tile(rgba, (int(sel.sum()), 1)), self.stamp))
-                shown.add(entity_id)
+            update.entities.append(scene_entity(entity_id, centres[sel], np.full(b - a, self.resolution),
+                                                np.tile(rgba, (b - a, 1)), self.stamp))
+            shown.add(entity_id)
         dirty_ids = {f"{robot}/{int(b):x}" for robot in self.robots for b in blocks}
         for entity_id in sorted((self.drawn & dirty_ids) - shown):
             deletion = SceneEntityDeletion(id=entity_id, type=SceneEntityDeletion.MATCHING_ID)

