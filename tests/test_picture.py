@@ -52,6 +52,39 @@ def test_slice_shows_exactly_the_occupied_voxels_of_one_layer(sample_map):
         picture.picture(leaves, res, thr, "side", slice_z=z)
 
 
+@pytest.mark.parametrize("view,sliced", [("top", False), ("top", True), ("front", False), ("side", False)])
+def test_free_and_occupied_pixels_equal_every_voxels_projection(tmp_path, view, sliced):
+    """Coarse pixels (several voxels a side) on a grid that starts off the leaves' alignment: a
+    pixel's state is the largest of every voxel projecting onto it, free leaves included (a
+    slice: of the leaves that hold its layer)."""
+    from voxtool.maps.base import Leaves
+
+    path = tmp_path / "small.vxm"
+    assert cli("build", "--sample", "--stop", 1, "--max-range", 8, "-o", path)[0] == 0
+    leaves, _, thr, _ = load_leaves(path)
+    lo, hi = picture.key_bounds(leaves)
+    layer = (int(lo[2]) + int(hi[2])) // 2 if sliced else None
+    shown = leaves
+    if sliced:
+        first = morton_decode(leaves.codes)[:, 2].astype(np.int64)
+        edge = 1 << (16 - leaves.depths.astype(np.int64))
+        held = (first <= layer) & (layer < first + edge)
+        shown = Leaves(leaves.codes[held], leaves.depths[held], leaves.values[held])
+    keys = morton_decode(expand_leaves(shown.codes, shown.depths)).astype(np.int64)
+    states = np.repeat(np.where(shown.values > np.float32(thr), picture.OCCUPIED, picture.FREE),
+                       1 << (3 * (16 - shown.depths.astype(np.int64)))).astype(np.int8)
+    u, w, _, _ = picture.VIEWS[view]
+    for max_side, offset in ((37, 3), (20, 5)):
+        raster = picture.Raster.covering(view, lo - offset, hi, layer, max_side=max_side)
+        raster.add(leaves, thr)
+        assert raster.shift >= 2
+        expect = np.zeros(raster.width * raster.height, np.int8)
+        flat = (((keys[:, w] - raster.kmin[1]) >> raster.shift) * raster.width
+                + ((keys[:, u] - raster.kmin[0]) >> raster.shift))
+        np.maximum.at(expect, flat, states)
+        assert np.array_equal(raster.state, expect)
+
+
 def test_figure_has_metric_axes_colour_bar_legend_and_scale_bar(sample_map):
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 

@@ -78,27 +78,12 @@ class Raster:
         return raster
 
     def add(self, leaves: Leaves, threshold_log: float) -> None:
+        from voxtool.kernels.raster import fill_leaves
+
         u, w, a, from_plus = VIEWS[self.view]
-        lo, hi = _extent(leaves)
-        if self.layer is not None:
-            keep = (lo[:, 2] <= self.layer) & (hi[:, 2] >= self.layer)
-            lo, hi, leaves = lo[keep], hi[keep], Leaves(leaves.codes[keep], leaves.depths[keep], leaves.values[keep])
-        occupied = leaves.values > np.float32(threshold_log)
-        state = np.where(occupied, OCCUPIED, FREE).astype(np.int8)
-        # the signed depth of the voxel nearest the viewer: larger is nearer
-        near = hi[:, a] if from_plus else -lo[:, a]
-        edge = leaf_edge(leaves.depths).astype(np.int64)
-        for e in np.unique(edge):
-            sel = edge == e
-            px0 = (lo[sel, u] - self.kmin[0]) >> self.shift
-            py0 = (lo[sel, w] - self.kmin[1]) >> self.shift
-            n = max(int(e) >> self.shift, 1)  # pixels a leaf covers on a side
-            occ = occupied[sel]
-            for dx in range(n):
-                for dy in range(n):
-                    flat = (py0 + dy) * self.width + (px0 + dx)
-                    np.maximum.at(self.state, flat, state[sel])
-                    np.maximum.at(self.depth, flat[occ], near[sel][occ])
+        fill_leaves(self.state, self.depth, self.width, int(self.kmin[0]), int(self.kmin[1]), self.shift, u, w, a,
+                    from_plus, -1 if self.layer is None else int(self.layer), leaves.codes, leaves.depths,
+                    leaves.values, np.float32(threshold_log))
 
     def values_m(self, resolution: float) -> np.ndarray:
         """The colour coordinate of occupied pixels in metres (NaN elsewhere), rows from the bottom."""
