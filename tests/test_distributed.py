@@ -19,11 +19,11 @@ from conftest import cli
 
 from voxtool.api import build_map
 from voxtool.config import MapParams, SensorModel
-from voxtool.distbuild import distributed_build, order_scans, partition_of, split_by_partition
+from voxtool.distbuild import cast_batch, distributed_build, order_scans, partition_of
 from voxtool.errors import FormatError
 from voxtool.io import sharded
 from voxtool.io.mapfile import load_map
-from voxtool.sources import SourceOptions
+from voxtool.sources import SourceOptions, open_source
 
 distributed = pytest.importorskip("dask.distributed")
 SAMPLE = Path(__file__).resolve().parents[1] / "voxtool" / "data" / "sample"
@@ -67,19 +67,20 @@ def test_partitions_hold_whole_shards_and_spread_them():
     assert np.bincount(part, minlength=7).min() > 50_000 / 7 * 0.8
 
 
-@pytest.mark.parametrize("depth,partitions", [(8, 1), (10, 3), (13, 16)])
-def test_a_scan_splits_into_partitions_in_its_order(depth, partitions):
-    """The run-by-run split equals the brute-force one: each update to its shard's partition,
-    in the scan's (Morton) order, occupied and free updates of a voxel kept apart."""
-    rng = np.random.default_rng(depth)
-    codes = np.sort(rng.integers(0, 1 << 40, 60_000))
-    updates = np.sort(np.concatenate([codes << 1, (codes[:3_000] << 1) | 1]))
-    pieces = split_by_partition(updates, depth, partitions)
-    owner = partition_of(updates >> 1, depth, partitions)
+@pytest.mark.parametrize("depth,partitions,picks", [(8, 1, [(0, 0)]), (10, 3, [(0, 1)]), (13, 16, [(0, 2), (0, 4)])])
+def test_a_cast_gives_each_partition_its_updates_in_scan_order(depth, partitions, picks):
+    """A cast task's pieces against the brute force: each scan's single-process updates (Morton
+    order) filtered by partition, scan after scan."""
+    from voxtool.maps.octree import scan_updates
+
+    params = MapParams(0.2)
+    *pieces, counts = cast_batch([str(SAMPLE)], SourceOptions(), params, picks, partitions, depth)
+    scans = list(open_source(SAMPLE, SourceOptions()).scans)
+    whole = [scan_updates(scans[p], params)[0] for _, p in picks]
     for p in range(partitions):
-        assert np.array_equal(pieces[p], updates[owner == p])
-    assert sum(len(x) for x in pieces) == len(updates)
-    assert [len(x) for x in split_by_partition(updates[:0], depth, partitions)] == [0] * partitions
+        expect = np.concatenate([u[partition_of(u >> 1, depth, partitions) == p] for u in whole])
+        assert np.array_equal(pieces[p], expect)
+    assert counts["voxel_updates"] == sum(len(u) for u in whole) == sum(len(x) for x in pieces) > 0
 
 
 def test_one_map_from_workers_equals_the_single_process_map(client, tmp_path):

@@ -61,33 +61,17 @@ def order_scans(stamps: list[np.ndarray]) -> list[tuple[int, int]]:
     return list(zip(src[order].tolist(), pos[order].tolist()))
 
 
-def split_by_partition(updates: np.ndarray, shard_depth: int, partitions: int) -> list[np.ndarray]:
-    """A scan's Morton-sorted updates (code << 1 | occupied) cut into its partitions' slices, each
-    in the scan's order. A shard's updates are one run of the sorted array, so runs are cut where
-    the shard prefix changes: no per-update partition array, no sort (a kaist03 scan at 0.1 m is
-    5.7 million updates; the whole-array argsort this replaces held four copies of them)."""
-    if updates.shape[0] == 0:
-        return [updates[:0]] * partitions
-    prefix = updates >> np.int64(1 + 3 * (16 - shard_depth))
-    starts = np.flatnonzero(prefix[1:] != prefix[:-1]) + 1
-    del prefix
-    starts = np.concatenate([[0], starts])
-    ends = np.append(starts[1:], updates.shape[0])
-    owner = partition_of(updates[starts] >> 1, shard_depth, partitions)
-    pieces = []
-    for p in range(partitions):
-        mine = np.flatnonzero(owner == p)
-        pieces.append(np.concatenate([updates[a:b] for a, b in zip(starts[mine].tolist(), ends[mine].tolist())])
-                      if mine.size else updates[:0])
-    return pieces
-
-
 def cast_batch(sources: list[str], options: SourceOptions, params: MapParams, picks: list[tuple[int, int]],
                partitions: int, shard_depth: int, threads: int = 1) -> tuple:
     """Ray casting of a batch of scans ((source, position) in map order): per partition, the
-    batch's updates (code << 1 | occupied) in scan order; and the batch's counters. Each scan is
-    split as soon as it is cast, so a task holds its output plus one scan's updates."""
+    batch's updates (code << 1 | occupied) in scan order; and the batch's counters. A scan's
+    updates are expanded partition by partition, so its pieces are slices of one array (a kaist03
+    scan at 0.1 m is 5.7 million updates: a split by copy, or by a sort, held them twice or more)."""
+    from voxtool.kernels.raycast import BRICK_BITS
     from voxtool.maps.octree import scan_bricks_updates
+
+    def group_of(codes: np.ndarray) -> np.ndarray:
+        return partition_of(codes, shard_depth, partitions)
 
     wanted: dict[int, list[int]] = {}
     for s, p in picks:
@@ -103,8 +87,17 @@ def cast_batch(sources: list[str], options: SourceOptions, params: MapParams, pi
         for offset, scan in enumerate(stream.scans):
             if first + offset not in keep:
                 continue
-            packed, steps, merged, _ = scan_bricks_updates(scan, params, threads)
-            by_pick[(s, first + offset)] = split_by_partition(packed, shard_depth, partitions)
+            # the updates come out partition by partition (Morton order inside each): a piece is a slice
+            packed, steps, merged, runs = scan_bricks_updates(scan, params, threads, group_of)
+            cuts = np.zeros(partitions + 1, np.int64)  # a scan without points: empty pieces
+            if runs is not None:
+                bricks, starts = runs
+                cuts = starts[np.searchsorted(group_of(bricks << np.int64(BRICK_BITS)), np.arange(partitions + 1))]
+            # one scan: the slices are the pieces; several: copies, so each scan's array is freed now
+            # and the pieces are joined below without holding the batch twice
+            own = len(picks) > 1
+            by_pick[(s, first + offset)] = [packed[a:b].copy() if own else packed[a:b]
+                                            for a, b in zip(cuts[:-1], cuts[1:])]
             stamps.append(scan.stamp_ns)
             counts["scans"] += 1
             counts["points"] += scan.points_read
@@ -123,9 +116,9 @@ def cast_batch(sources: list[str], options: SourceOptions, params: MapParams, pi
     pieces = []
     for p in range(partitions):  # scan order inside each partition: the picks' order
         parts = [by_pick[pk][p] for pk in picks]
-        pieces.append(np.concatenate(parts) if parts else np.zeros(0, np.int64))
+        pieces.append(parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.zeros(0, np.int64))
         for pk in picks:
-            by_pick[pk][p] = None  # freed as the partition's piece is made
+            by_pick[pk][p] = None  # a copy is freed as its partition's piece is made
     counts["raycast_s"] = time.perf_counter() - t0
     counts["stamps"] = (min(stamps), max(stamps)) if stamps else None
     return (*pieces, counts)

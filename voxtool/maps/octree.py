@@ -12,6 +12,7 @@ import numpy as np
 from voxtool.config import MapParams, SensorModel
 from voxtool.kernels import octree as K
 from voxtool.kernels.raycast import (
+    BRICK_BITS,
     BrickBuffers,
     balanced_cuts,
     brick_voxels,
@@ -77,16 +78,20 @@ def ray_parts(scan: Scan, threads: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
 
 
-def bricks_to_updates(bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray,
-                      threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def bricks_to_updates(bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray, threads: int,
+                      group_of=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Morton-sorted voxel updates (code << 1 | occupied) of a scan's bricks, with the distinct
     brick codes and where each brick's updates start (the runs the map update works by);
-    expanded on `threads` threads, each a run of bricks into its own part of the output."""
-    order = np.argsort(bricks, kind="stable")
-    sorted_codes = bricks[order]
-    firsts = np.flatnonzero(np.diff(sorted_codes, prepend=np.int64(-1)))  # a brick several threads filled: once
-    distinct = sorted_codes[firsts]
-    firsts = np.append(firsts, sorted_codes.shape[0])
+    expanded on `threads` threads, each a run of bricks into its own part of the output.
+    group_of (voxel codes -> small ints): the bricks ordered by group first, then Morton, so each
+    group's updates are one slice of the output (a Dask cast's partitions, without a copy)."""
+    key = bricks
+    if group_of is not None:  # brick codes have 39 bits: the group goes above them
+        key = (group_of(bricks << BRICK_BITS).astype(np.int64) << np.int64(40)) | bricks
+    order = np.argsort(key, kind="stable")
+    firsts = np.flatnonzero(np.diff(key[order], prepend=np.int64(-1)))  # a brick several threads filled: once
+    distinct = bricks[order][firsts]
+    firsts = np.append(firsts, key.shape[0])
     n = distinct.shape[0]
     parts = max(1, min(threads, n // BRICKS_PER_PART))
     runs = [(n * k // parts, n * (k + 1) // parts) for k in range(parts)]
@@ -99,9 +104,10 @@ def bricks_to_updates(bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray,
     return out, distinct, starts
 
 
-def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1) -> tuple:
+def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1, group_of=None) -> tuple:
     """(Morton-sorted code << 1 | occupied updates of one scan, its DDA step count, rays merged
-    into others (0 unless params.merge_rays), (distinct brick codes, their update starts))."""
+    into others (0 unless params.merge_rays), (distinct brick codes, their update starts)).
+    group_of: sorted by group first (bricks_to_updates)."""
     n = scan.points.shape[0]
     if n == 0:
         return np.empty(0, dtype=np.int64), 0, 0, None
@@ -119,7 +125,7 @@ def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1) -> tupl
         touched = np.concatenate([p[1] for p in parts])
         occ = np.concatenate([p[2] for p in parts])
         steps = sum(p[3] for p in parts)
-    packed, distinct, starts = bricks_to_updates(bricks, touched, occ, threads)
+    packed, distinct, starts = bricks_to_updates(bricks, touched, occ, threads, group_of)
     return packed, int(steps), merged, (distinct, starts)
 
 
