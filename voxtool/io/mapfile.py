@@ -14,8 +14,9 @@ from voxtool.keys import leaf_span
 from voxtool.maps.base import Leaves, MapBackend
 
 
-def save_map(path: str | Path, backend: MapBackend, info: dict) -> None:
-    """Write `backend` with its parameters and `info` (source, counts, timings) to a .vxm file."""
+def save_map(path: str | Path, backend: MapBackend, info: dict, state: dict[str, np.ndarray] | None = None) -> None:
+    """Write `backend` with its parameters and `info` (source, counts, timings) to a .vxm file;
+    `state`: its state_arrays() when the caller already has them."""
     header = {
         "voxtool_version": voxtool.__version__,
         "backend": backend.name,
@@ -24,7 +25,7 @@ def save_map(path: str | Path, backend: MapBackend, info: dict) -> None:
         "backend_params": backend.extra_meta(),
         "info": info,
     }
-    write_snapshot(path, header, backend.state_arrays())
+    write_snapshot(path, header, backend.state_arrays() if state is None else state)
 
 
 def validate_leaves(leaves: Leaves, where: str) -> None:
