@@ -43,11 +43,9 @@ class Snapshot:
 CODECS = ("zstd", "raw")
 
 
-def snapshot_bytes(header: dict, arrays: dict[str, np.ndarray], codec: str = "zstd", level: int = 3) -> bytes:
-    """Encode a snapshot. `header` must be JSON-serialisable; 'arrays' is filled in here.
-    codec "raw" stores arrays uncompressed (byte-exact golden vectors across zstd versions).
-    zstd runs on every core: its multi-threaded frames are the same bytes whatever the number
-    of threads, so a snapshot does not depend on the machine that wrote it."""
+def _snapshot_parts(header: dict, arrays: dict[str, np.ndarray], codec: str, level: int) -> list:
+    """The snapshot's bytes before its CRC, as pieces (fixed fields and header, then each
+    payload): the header lists every payload's size and CRC, so all are compressed first."""
     compressor = zstandard.ZstdCompressor(level=level, threads=-1)
     payloads = []
     table = []
@@ -68,13 +66,26 @@ def snapshot_bytes(header: dict, arrays: dict[str, np.ndarray], codec: str = "zs
     head = json.dumps(full, sort_keys=True, separators=(",", ":")).encode()
     if len(head) > MAX_HEADER:
         raise ValueError("snapshot header too large")
-    body = _FIXED.pack(MAGIC, VERSION, 0, len(head)) + head + b"".join(payloads)
+    return [_FIXED.pack(MAGIC, VERSION, 0, len(head)) + head, *payloads]
+
+
+def snapshot_bytes(header: dict, arrays: dict[str, np.ndarray], codec: str = "zstd", level: int = 3) -> bytes:
+    """Encode a snapshot. `header` must be JSON-serialisable; 'arrays' is filled in here.
+    codec "raw" stores arrays uncompressed (byte-exact golden vectors across zstd versions).
+    zstd runs on every core: its multi-threaded frames are the same bytes whatever the number
+    of threads, so a snapshot does not depend on the machine that wrote it."""
+    body = b"".join(_snapshot_parts(header, arrays, codec, level))
     return body + struct.pack("<I", zlib.crc32(body))
 
 
 def write_snapshot(path: str | Path, header: dict, arrays: dict[str, np.ndarray]) -> None:
+    """snapshot_bytes written piece by piece (no joined copies of the compressed payloads)."""
+    crc = 0
     with atomic_writer(path) as handle:
-        handle.write(snapshot_bytes(header, arrays))
+        for part in _snapshot_parts(header, arrays, "zstd", 3):
+            handle.write(part)
+            crc = zlib.crc32(part, crc)
+        handle.write(struct.pack("<I", crc))
 
 
 def parse_snapshot(blob: bytes, where: str = "snapshot") -> Snapshot:
