@@ -49,16 +49,30 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, quiet:
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                    dashboard_address=":0", silence_logs=logging.ERROR)
             client = Client(cluster)
+        # each worker sets numba up (without SciPy: 0.2 s less) and loads the build kernels now,
+        # while this process plans the work; the futures are held until the client closes
+        warming = [client.submit(warm_worker, key=f"voxtool-warm-{address}", workers=[address], priority=10)
+                   for address in client.scheduler_info(n_workers=-1)["workers"]]
         if not quiet:
             where = scheduler or f"local cluster of {workers} worker processes"
             print(f"voxtool: dask: {where}; dashboard {client.dashboard_link}", file=sys.stderr, flush=True)
         try:
             yield client
         finally:
+            del warming
             client.close()
     finally:
         if cluster is not None:
             cluster.close()
+
+
+def warm_worker() -> None:
+    """Run on every worker when a client connects: voxtool.jit's start and the build kernels."""
+    from voxtool.jit import start
+    from voxtool.maps.octree import warm_up_kernels
+
+    start()
+    warm_up_kernels()
 
 
 def gather_all(client, futures: list, desc: str, progress: bool | None) -> list:
