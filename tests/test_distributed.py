@@ -272,3 +272,44 @@ def test_one_source_encoded_on_workers_is_the_log_named(tmp_path):
     assert there.is_file() and json.loads(text)["rows"][0]["output"] == str(there)
     packets = [list(read_log(p)[1]) for p in (here, there)]
     assert len(packets[0]) > 0 and packets[0] == packets[1]
+
+
+def test_scheduler_address_runs_on_a_cluster_started_by_dask_commands(tmp_path):
+    """The README's second way: `dask scheduler` and `dask worker ADDRESS` started apart (real
+    processes), then `voxtool ... --scheduler ADDRESS`: one map equal to the single-process map,
+    a fleet's rows, and an address nobody listens on as one line and exit 1."""
+    info = tmp_path / "scheduler.json"
+    dask = [sys.executable, "-m", "dask"]
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    procs = [subprocess.Popen(dask + ["scheduler", "--port", "0", "--dashboard-address", ":0", "--scheduler-file",
+                                      str(info)], **quiet)]
+    try:
+        deadline = time.time() + 60
+        while not info.exists() and time.time() < deadline:
+            time.sleep(0.1)
+        address = json.loads(info.read_text())["address"]
+        procs.append(subprocess.Popen(dask + ["worker", address, "--nworkers", "2", "--nthreads", "1"], **quiet))
+        from dask.distributed import Client
+
+        with Client(address, timeout="30s") as watcher:
+            watcher.wait_for_workers(2, timeout=60)
+        code, text, err = cli("build", SAMPLE, "-o", tmp_path / "map.vxm", "--scheduler", address, "--json",
+                              "--no-progress")
+        assert code == 0, err
+        assert f"dask: {address}" in err
+        built = json.loads(text)
+        assert same_leaves(load_map(tmp_path / "map.vxm")[0], single_map(SAMPLE, tmp=tmp_path))
+        # a fleet on the same cluster: a row per map
+        code, text, err = cli("stats", tmp_path / "map.vxm", tmp_path / "single.vxm", "--scheduler", address, "--json")
+        rows = json.loads(text)["rows"]
+        assert code == 0 and [r["result"]["occupied_voxels"] for r in rows] == [built["occupied_voxels"]] * 2
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.wait(30)
+    # nobody listening (Dask retries for 10 s), and addresses that are not addresses
+    for address, exit_code in (("tcp://127.0.0.1:9", 1), ("10.0.0.5", 2), ("nonsense://x:1", 2)):
+        code, _, err = cli("build", SAMPLE, "-o", tmp_path / "x.vxm", "--scheduler", address)
+        assert code == exit_code and err.count("\n") == 1 and address in err, err
+        assert not (tmp_path / "x.vxm").exists()

@@ -43,6 +43,9 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, quiet:
         if scheduler is not None:
             try:
                 client = Client(scheduler, timeout="10s")
+            except ValueError as err:  # Dask's own words: "unknown address scheme", "missing port number"
+                raise ParameterError(f"--scheduler {scheduler}: not a Dask scheduler address ({err}; "
+                                     "for example tcp://10.0.0.5:8786)") from None
             except (OSError, TimeoutError) as err:
                 raise ClusterError(f"{scheduler}: cannot reach the Dask scheduler ({err})") from None
         else:
