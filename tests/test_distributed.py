@@ -284,10 +284,13 @@ def test_scheduler_address_runs_on_a_cluster_started_by_dask_commands(tmp_path):
     procs = [subprocess.Popen(dask + ["scheduler", "--port", "0", "--dashboard-address", ":0", "--scheduler-file",
                                       str(info)], **quiet)]
     try:
-        deadline = time.time() + 60
-        while not info.exists() and time.time() < deadline:
-            time.sleep(0.1)
-        address = json.loads(info.read_text())["address"]
+        deadline, address = time.time() + 60, None
+        while address is None and time.time() < deadline:  # the file may be seen half written
+            try:
+                address = json.loads(info.read_text())["address"]
+            except (OSError, ValueError, KeyError):
+                time.sleep(0.1)
+        assert address, "dask scheduler did not start"
         procs.append(subprocess.Popen(dask + ["worker", address, "--nworkers", "2", "--nthreads", "1"], **quiet))
         from dask.distributed import Client
 
