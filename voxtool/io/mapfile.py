@@ -14,9 +14,8 @@ from voxtool.keys import leaf_span
 from voxtool.maps.base import Leaves, MapBackend
 
 
-def save_map(path: str | Path, backend: MapBackend, info: dict, state: dict[str, np.ndarray] | None = None) -> None:
-    """Write `backend` with its parameters and `info` (source, counts, timings) to a .vxm file;
-    `state`: its state_arrays() when the caller already has them."""
+def save_map(path: str | Path, backend: MapBackend, info: dict) -> None:
+    """Write `backend` with its parameters and `info` (source, counts, timings) to a .vxm file."""
     header = {
         "voxtool_version": voxtool.__version__,
         "backend": backend.name,
@@ -25,7 +24,7 @@ def save_map(path: str | Path, backend: MapBackend, info: dict, state: dict[str,
         "backend_params": backend.extra_meta(),
         "info": info,
     }
-    write_snapshot(path, header, backend.state_arrays() if state is None else state)
+    write_snapshot(path, header, backend.state_arrays())
 
 
 def validate_leaves(leaves: Leaves, where: str) -> None:

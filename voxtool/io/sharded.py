@@ -69,9 +69,8 @@ def write_part(part, staging: str, p: int, params, info: dict | None = None) -> 
     backend = OctreeMap(params, part.sensor, threads=1, shard_depth=part.tree.depth)
     backend.tree = part.tree
     path = Path(staging) / part_name(p)
-    leaves = backend.leaves()  # once, for the file and its figures (the tree is derived each time)
-    save_map(path, backend, {**(info or {}), "partition": p},
-             state={"leaf_codes": leaves.codes, "leaf_depths": leaves.depths, "leaf_values": leaves.values})
+    save_map(path, backend, {**(info or {}), "partition": p})
+    leaves = backend.leaves()  # the leaves the file was written from: the tree keeps them until its next update
     entry = {"file": path.name, "bytes": path.stat().st_size, "sha256": _sha256(path), "leaves": len(leaves)}
     entry.update(leaf_stats(leaves, params.resolution, part.sensor.threshold_log))
     return entry
