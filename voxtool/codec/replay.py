@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from voxtool.codec.packet import OCCUPIED
-from voxtool.keys import TREE_MAX_VAL, morton_decode
+from voxtool.keys import keys_to_coords, morton_decode
 from voxtool.plots import series_colour
 
 TOPIC = "/voxtool/fusion"
@@ -84,8 +84,7 @@ class Replay:
         hi = np.searchsorted(self.codes, (blocks + 1) << BLOCK_BITS)
         inside = np.concatenate([np.arange(a, b) for a, b in zip(lo.tolist(), hi.tolist())] or [np.zeros(0, np.int64)])
         codes, owners = self.codes[inside], self.owners[inside]
-        keys = morton_decode(codes).astype(np.float64)
-        centres = (keys - TREE_MAX_VAL + 0.5) * self.resolution
+        centres = keys_to_coords(morton_decode(codes), self.resolution)
         block_of = codes >> BLOCK_BITS
         shown = set()
         # one entity per (robot, block): runs of the voxels sorted by owner, then block
