@@ -154,6 +154,12 @@ def test_sharded_snapshot_round_trips_and_is_checked(client, tmp_path):
             clouds.append(pts[np.lexsort(pts.T)])
         assert len(clouds[0]) == whole["occupied_voxels"] + whole["free_voxels"]
         assert np.array_equal(clouds[0], clouds[1]), suffix
+    # the viewer's scene, read part by part, is the single snapshot's
+    from voxtool.viewer import load_scene
+
+    parted, whole_scene = load_scene(out), load_scene(tmp_path / "single.vxm")
+    assert np.array_equal(np.unique(parted.occupied, axis=0), np.unique(whole_scene.occupied, axis=0))
+    assert np.array_equal(parted.free, whole_scene.free) and parted.free_shift == whole_scene.free_shift
     # a part that changed, or a manifest that is missing, is an error naming the file
     part = out / manifest["parts"][1]["file"]
     blob = bytearray(part.read_bytes())

@@ -89,10 +89,11 @@ def _free_cells(parts: list[tuple[np.ndarray, np.ndarray]], max_cells: int) -> t
     return np.zeros((0, 3), np.int64), 16
 
 
-def scene_of(leaf_sets, resolution: float, threshold_log: float, max_free: int = MAX_FREE_CELLS) -> Scene:
-    """The scene of a map given as leaf sets (one for a snapshot, one per part of a sharded map)."""
+def scene_of(leaf_sets, resolution: float, max_free: int = MAX_FREE_CELLS) -> Scene:
+    """The scene of a map given as (leaves, occupancy threshold in log-odds) sets: one for a
+    snapshot, one per part of a sharded map (taken one at a time: only what is drawn is kept)."""
     occupied, free = [], []
-    for leaves in leaf_sets:
+    for leaves, threshold_log in leaf_sets:
         occ = leaves.values > np.float32(threshold_log)
         occupied.append(morton_decode(expand_leaves(leaves.codes[occ], leaves.depths[occ])).astype(np.int64))
         free.append((morton_decode(leaves.codes[~occ]).astype(np.int64), leaf_edge(leaves.depths[~occ]).astype(np.int64)))
@@ -110,13 +111,13 @@ def load_scene(path: str | Path, progress: bool | None = False) -> Scene:
         from voxtool.progress import track
 
         manifest = sharded.read_manifest(path)
-        parts = [(backend.leaves(), backend.sensor.threshold_log) for _, backend in
-                 track(sharded.iter_parts(path), len(manifest["parts"]), "view", progress, "part")]
-        return scene_of((lv for lv, _ in parts), manifest["map_params"]["resolution"], parts[0][1])
+        parts = track(sharded.iter_parts(path), len(manifest["parts"]), "view", progress, "part")
+        return scene_of(((backend.leaves(), backend.sensor.threshold_log) for _, backend in parts),
+                        manifest["map_params"]["resolution"])
     from voxtool.api import load_leaves
 
     leaves, resolution, threshold, _ = load_leaves(path)
-    return scene_of([leaves], resolution, threshold)
+    return scene_of([(leaves, threshold)], resolution)
 
 
 def geometries(scene: Scene, show_free: bool, layer: int | None) -> list:
