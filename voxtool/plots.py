@@ -143,3 +143,32 @@ def write_plot(fig, path: str | Path) -> dict:
     """Write a plot as PNG (atomically); the figures `--json` reports about it."""
     width, height = save(fig, Path(path))
     return {"plot": str(path), "width": width, "height": height}
+
+
+def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: float | None = None):
+    """`clean` before and after, seen from above: every point by height with the removed ones in
+    red, then the static points alone (same axes). `extent_m`: a square of that side around the
+    points' median (a long drive is otherwise too small to judge)."""
+    from voxtool.io.picture import height_colours
+
+    fig = _figure(1, 5.2)
+    before, after = fig.subplots(1, 2, sharex=True, sharey=True)
+    z = points[:, 2]
+    lo, hi = np.percentile(z, [1, 99]) if z.size else (0.0, 1.0)
+    colours = height_colours(np.clip(z, lo, hi), (float(lo), float(hi)))
+    static = ~dynamic
+    for ax, mask, name in ((before, np.ones_like(static), "before"), (after, static, "after")):
+        ax.scatter(points[mask & static, 0], points[mask & static, 1], s=0.05, c=colours[mask & static],
+                   linewidths=0, rasterized=True)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (m)")
+        ax.set_title(f"{name}: {int((mask & static).sum()):,} static points"
+                     + (f", {int(dynamic.sum()):,} removed (red)" if name == "before" else ""), fontsize=9)
+    before.scatter(points[dynamic, 0], points[dynamic, 1], s=0.4, c="red", linewidths=0, rasterized=True)
+    before.set_ylabel("y (m)")
+    if extent_m is not None and z.size:
+        cx, cy = np.median(points[:, 0]), np.median(points[:, 1])
+        before.set_xlim(cx - extent_m / 2, cx + extent_m / 2)
+        before.set_ylim(cy - extent_m / 2, cy + extent_m / 2)
+    fig.suptitle(f"{title} (height: {lo:.1f} to {hi:.1f} m, viridis)", fontsize=10)
+    return fig

@@ -20,6 +20,7 @@ import click  # noqa: E402
 from voxtool import __version__  # noqa: E402
 from voxtool.cli.build import build  # noqa: E402
 from voxtool.cli.cache_bench import cache_bench_cmd  # noqa: E402
+from voxtool.cli.clean import clean  # noqa: E402
 from voxtool.cli.common import BACKEND_NAMES, SAMPLE_DIR  # noqa: E402
 from voxtool.cli.decode import decode  # noqa: E402
 from voxtool.cli.encode import encode  # noqa: E402
@@ -63,7 +64,7 @@ def main() -> None:
     """
 
 
-for _command in (build, cache_bench_cmd, encode, decode, merge, query, stats, export, view):
+for _command in (build, clean, cache_bench_cmd, encode, decode, merge, query, stats, export, view):
     main.add_command(_command)
 
 

@@ -170,15 +170,10 @@ def summary_rows(stats: dict) -> list[tuple[str, str]]:
     return rows
 
 
-def scan_options(func):
-    """Options shared by every command that reads scans: source interpretation and map model."""
-    options = [
-        click.option("--resolution", default=0.2, show_default=True, type=float, help="Voxel edge length in metres."),
-        click.option("--max-range", default=-1.0, show_default=True, type=float,
-                     help="Rays longer than this are cut here and mark no hit (OctoMap maxrange); < 0 = unlimited."),
+def _source_option_list() -> list:
+    """How a source is read: poses, frames, topics, the scan slice, the near-range cut."""
+    return [
         click.option("--min-range", default=0.0, show_default=True, type=float, help="Drop points closer than this to the sensor."),
-        click.option("--merge-rays", is_flag=True,
-                     help="Integrate rays with identical voxel paths once (TinyOctoMap); the map is unchanged under OctoMap's model."),
         click.option("--poses", type=click.Path(path_type=Path), help="Pose file (TUM, index+TUM or KITTI), one row per scan file."),
         click.option("--no-viewpoint", is_flag=True,
                      help="PCD points are already in the world frame; take only the ray origin from VIEWPOINT/--poses."),
@@ -188,27 +183,55 @@ def scan_options(func):
         click.option("--start", default=0, show_default=True, type=int, help="First scan index to use."),
         click.option("--stop", default=None, type=int, help="Stop before this scan index."),
         click.option("--every", default=1, show_default=True, type=int, help="Use every n-th scan."),
+    ]
+
+
+def _apply_options(func, options: list):
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+def scan_options(func):
+    """Options shared by every command that reads scans: source interpretation and map model."""
+    options = [
+        click.option("--resolution", default=0.2, show_default=True, type=float, help="Voxel edge length in metres."),
+        click.option("--max-range", default=-1.0, show_default=True, type=float,
+                     help="Rays longer than this are cut here and mark no hit (OctoMap maxrange); < 0 = unlimited."),
+        click.option("--merge-rays", is_flag=True,
+                     help="Integrate rays with identical voxel paths once (TinyOctoMap); the map is unchanged under OctoMap's model."),
+        *_source_option_list(),
         click.option("--prob-hit", default=0.7, show_default=True, type=float, help="Occupancy probability of a hit (OctoMap)."),
         click.option("--prob-miss", default=0.4, show_default=True, type=float, help="Occupancy probability of a pass-through."),
         click.option("--clamp-min", default=0.1192, show_default=True, type=float, help="Lower probability clamp."),
         click.option("--clamp-max", default=0.971, show_default=True, type=float, help="Upper probability clamp."),
         click.option("--threshold", default=0.5, show_default=True, type=float, help="Occupancy probability threshold."),
     ]
-    for option in reversed(options):
-        func = option(func)
-    return func
+    return _apply_options(func, options)
+
+
+def source_options(func):
+    """The options of scan_options that say how a source is read (no map model)."""
+    return _apply_options(func, _source_option_list())
+
+
+def source_setup(kw: dict):
+    """SourceOptions from the source_options values (removed from kw)."""
+    from voxtool.sources import SourceOptions
+
+    poses = kw.pop("poses")
+    return SourceOptions(poses=str(poses) if poses else None, no_viewpoint=kw.pop("no_viewpoint"),
+                         topic=kw.pop("topic"), world_frame=kw.pop("world_frame"), pose_topic=kw.pop("pose_topic"),
+                         start=kw.pop("start"), stop=kw.pop("stop"), every=kw.pop("every"), min_range=kw.pop("min_range"))
 
 
 def scan_setup(kw: dict):
     """(SourceOptions, MapParams, SensorModel) from the scan_options values (removed from kw)."""
     from voxtool.config import MapParams, SensorModel
-    from voxtool.sources import SourceOptions
 
-    poses = kw.pop("poses")
-    options = SourceOptions(poses=str(poses) if poses else None, no_viewpoint=kw.pop("no_viewpoint"),
-                            topic=kw.pop("topic"), world_frame=kw.pop("world_frame"), pose_topic=kw.pop("pose_topic"),
-                            start=kw.pop("start"), stop=kw.pop("stop"), every=kw.pop("every"), min_range=kw["min_range"])
-    params = MapParams(resolution=kw.pop("resolution"), max_range=kw.pop("max_range"), min_range=kw.pop("min_range"),
+    min_range = kw["min_range"]
+    options = source_setup(kw)
+    params = MapParams(resolution=kw.pop("resolution"), max_range=kw.pop("max_range"), min_range=min_range,
                        merge_rays=kw.pop("merge_rays"))
     sensor = SensorModel(kw.pop("prob_hit"), kw.pop("prob_miss"), kw.pop("clamp_min"), kw.pop("clamp_max"),
                          kw.pop("threshold"))

@@ -61,11 +61,13 @@ def ply_rows(pts: np.ndarray, colors) -> bytes:
     return rec.tobytes()
 
 
-def pcd_header(points: int, coloured: bool) -> bytes:
+def pcd_header(points: int, coloured: bool, viewpoint: tuple | None = None) -> bytes:
+    """A binary PCD header; `viewpoint` (tx ty tz qw qx qy qz): the sensor pose, identity if None."""
     fields, sizes, types = ("x y z rgb", "4 4 4 4", "F F F F") if coloured else ("x y z", "4 4 4", "F F F")
-    return (f"# .PCD v0.7 - voxtool voxel centres\nVERSION 0.7\nFIELDS {fields}\nSIZE {sizes}\nTYPE {types}\n"
+    vp = "0 0 0 1 0 0 0" if viewpoint is None else " ".join(repr(float(v)) for v in viewpoint)
+    return (f"# .PCD v0.7 - voxtool\nVERSION 0.7\nFIELDS {fields}\nSIZE {sizes}\nTYPE {types}\n"
             f"COUNT {' '.join('1' * len(fields.split()))}\nWIDTH {points}\nHEIGHT 1\n"
-            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA binary\n").encode()
+            f"VIEWPOINT {vp}\nPOINTS {points}\nDATA binary\n").encode()
 
 
 def pcd_rows(pts: np.ndarray, colors) -> bytes:

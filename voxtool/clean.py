@@ -1,0 +1,254 @@
+"""`voxtool clean`: a static point map from a scan sequence, by void regions (DUFOMap's idea).
+
+A voxel is *void* once any ray of any scan has passed through it farther than `sensor_noise`
+from every point of that scan (DUFOMap's inflated hits: range noise and porous surfaces such as
+foliage, seen through between the hits of one scan, give no void evidence). A point is dynamic when its voxel and every voxel within
+`pose_error` voxels of it are void: something else was seen through that space at another
+time. Everything else is static. The void map is an octree of the exact OctoMap ray casting
+(voxtool.maps.octree) holding -1 for void voxels; docs/cleaning.md says how to tune it and
+docs/design/clean.md why it was chosen and what it was measured against.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from voxtool.config import MapParams, SensorModel
+from voxtool.errors import ParameterError
+from voxtool.kernels import octree as K
+from voxtool.maps.base import IntegrateTiming, PreparedScan
+from voxtool.maps.shards import DEFAULT_SHARD_DEPTH, ShardedOctree
+from voxtool.parallel import resolve_threads
+from voxtool.sources import ScanStream, SourceOptions, open_source
+from voxtool.sources.scan import Scan
+
+CLOUD_SUFFIXES = (".pcd", ".ply")
+
+
+@dataclass(frozen=True)
+class CleanParams:
+    """How `clean` judges a point (docs/cleaning.md)."""
+
+    resolution: float = 0.1  # voxel edge, metres
+    sensor_noise: float = 0.2  # d_s: no void evidence within d_s of a point of the same scan
+    pose_error: int = 1  # d_p: voxels around a point's voxel that must be void too
+    max_range: float = -1.0  # rays are cut here (no void beyond); < 0 unlimited
+
+    def __post_init__(self) -> None:
+        MapParams(resolution=self.resolution, max_range=self.max_range)  # the same checks as a map's
+        if not (np.isfinite(self.sensor_noise) and 0.0 <= self.sensor_noise <= 100 * self.resolution):
+            raise ParameterError(f"sensor_noise={self.sensor_noise} must lie in [0, 100 voxels] metres")
+        if not 0 <= self.pose_error <= 5:
+            raise ParameterError(f"pose_error={self.pose_error} must lie in 0..5 voxels")
+
+    @property
+    def noise_voxels(self) -> int:
+        """sensor_noise in whole voxels (rounded up: never less protection than asked)."""
+        return int(np.ceil(self.sensor_noise / self.resolution - 1e-9))
+
+
+class VoidMap:
+    """The void octree, shaped as a map backend so voxtool.pipeline.build streams scans into it
+    (reading and ray casting of the next scan overlap the update of this one)."""
+
+    name = "void"
+
+    def __init__(self, params: CleanParams, threads: int = 0) -> None:
+        from voxtool.kernels.clean import ball_offsets
+
+        self.clean = params
+        self.params = MapParams(resolution=params.resolution, max_range=params.max_range)
+        self.sensor = SensorModel()
+        self.threads = resolve_threads(threads)
+        self.tree = ShardedOctree(DEFAULT_SHARD_DEPTH, self.threads)
+        self.near_hit = ball_offsets(params.noise_voxels)
+
+    def warm_up(self) -> None:
+        from voxtool.maps.octree import warm_up_kernels
+
+        warm_up_kernels()
+        self.prepare(Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
+        dynamic_points(self, np.zeros((1, 3), dtype=np.float32))
+
+    def prepare(self, scan: Scan) -> PreparedScan:
+        """The scan's void evidence: the free voxels of its rays outside the sensor_noise ball of
+        every voxel it hit (map-independent: runs on the read-ahead thread while the last scan
+        updates the void map)."""
+        from voxtool.kernels.clean import free_away_from_hits
+        from voxtool.maps.octree import scan_bricks_updates
+
+        t0 = time.perf_counter()
+        packed, steps, _, _ = scan_bricks_updates(scan, self.params, self.threads)
+        size = 1 << max(10, int(np.count_nonzero(packed & 1)).bit_length())  # bricks near hits: ~hits / 4
+        while (free := free_away_from_hits(packed, self.near_hit, np.full(size, -1, dtype=np.int64),
+                                           np.zeros((size, 8), dtype=np.int64))) is None:
+            size *= 2
+        return PreparedScan(free << 1, steps, time.perf_counter() - t0, int(scan.points.shape[0]))
+
+    def apply(self, prepared: PreparedScan) -> IntegrateTiming:
+        t0 = time.perf_counter()
+        # void = -1, once and for good: a miss of -1 clamped to [-1, 0]
+        self.tree.apply(prepared.packed, K.ADD, hit=0.0, miss=-1.0, cmin=-1.0, cmax=0.0)
+        return IntegrateTiming(raycast=prepared.seconds, update=time.perf_counter() - t0,
+                               voxel_updates=int(prepared.packed.shape[0]), ray_steps=prepared.steps,
+                               rays=prepared.rays)
+
+    def void(self, codes: np.ndarray) -> np.ndarray:
+        """Whether each finest-level voxel is void."""
+        return self.tree.values(codes) < -0.5  # NaN (never seen) compares False
+
+    def used_bytes(self) -> int:
+        return self.tree.used_bytes()
+
+
+def cube_offsets(radius: int) -> np.ndarray:
+    """(n, 3) offsets of the (2r+1)^3 cube around a voxel, itself excluded."""
+    r = np.arange(-radius, radius + 1)
+    cube = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.int64)
+    return cube[np.any(cube != 0, axis=1)]
+
+
+CLASSIFY_CHUNK = 131_072  # points a thread judges at a time
+
+
+def dynamic_points(void_map: VoidMap, points: np.ndarray) -> np.ndarray:
+    """Which world points are dynamic: their voxel and its pose_error cube all void (chunks of
+    points on the map's threads)."""
+    from voxtool.parallel import run_parts
+
+    n = points.shape[0]
+    chunks = [(a, min(a + CLASSIFY_CHUNK, n)) for a in range(0, n, CLASSIFY_CHUNK)]
+    out = np.empty(n, dtype=bool)
+
+    def judge(chunk):
+        out[chunk[0]:chunk[1]] = _dynamic_chunk(void_map, points[chunk[0]:chunk[1]])
+
+    run_parts(void_map.threads, judge, chunks)
+    return out
+
+
+def _dynamic_chunk(void_map: VoidMap, points: np.ndarray) -> np.ndarray:
+    from voxtool.kernels.clean import neighbour_codes
+    from voxtool.keys import coords_to_keys, morton_encode
+
+    codes = morton_encode(coords_to_keys(points, void_map.params.resolution))
+    dynamic = void_map.void(codes)
+    offsets = cube_offsets(void_map.clean.pose_error)
+    candidates = np.flatnonzero(dynamic)
+    if candidates.shape[0] and offsets.shape[0]:
+        near = np.empty((candidates.shape[0], offsets.shape[0]), dtype=np.int64)
+        neighbour_codes(codes[candidates], offsets, near)
+        inside = near >= 0
+        ok = np.zeros(near.shape, dtype=bool)
+        ok[inside] = void_map.void(near[inside])
+        dynamic[candidates] = ok.all(axis=1)
+    return dynamic
+
+
+@dataclass
+class Cleaned:
+    """A cleaned scan sequence: every kept point (world frame, scan order), which are dynamic,
+    where each scan's points start, and the figures of the run."""
+
+    points: np.ndarray  # (N, 3) float32
+    dynamic: np.ndarray  # (N,) bool
+    scan_starts: np.ndarray  # (scans + 1,) int64
+    figures: dict = field(default_factory=dict)
+
+
+def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, progress: bool | None = None) -> Cleaned:
+    """Two passes over the points, one over the rays: build the void map from every scan while
+    keeping the scans' points, then judge every point against the finished map."""
+    from voxtool.pipeline import build
+
+    void_map = VoidMap(params, threads)
+    clouds: list[np.ndarray] = []
+    report = build(stream, void_map, progress, on_scan=lambda scan, _: clouds.append(scan.points))
+    t0 = time.perf_counter()
+    points = np.concatenate(clouds) if clouds else np.empty((0, 3), dtype=np.float32)
+    dynamic = dynamic_points(void_map, points)
+    t_classify = time.perf_counter() - t0
+    starts = np.zeros(len(clouds) + 1, dtype=np.int64)
+    np.cumsum([c.shape[0] for c in clouds], out=starts[1:])
+    built = report.to_dict()
+    figures = {
+        "scans": built["scans"], "points_read": built["points"], "points_dropped": built["points_dropped"],
+        "points_in": int(points.shape[0]), "points_kept": int(points.shape[0] - dynamic.sum()),
+        "points_removed": int(dynamic.sum()), "void_map_bytes": void_map.used_bytes(),
+        "threads": void_map.threads, "params": asdict(params),
+        "timings_s": {"jit": built["timings_s"]["jit"], "read": built["timings_s"]["read"],
+                      "raycast": built["timings_s"]["raycast"], "void_update": built["timings_s"]["update"],
+                      "scans_total": built["timings_s"]["total"], "classify": round(t_classify, 6)},
+    }
+    return Cleaned(points, dynamic, starts, figures)
+
+
+def check_outputs(output: str | os.PathLike | None, labels: str | os.PathLike | None) -> None:
+    """Refuse outputs that cannot be written before any work."""
+    from voxtool.atomic import check_writable
+
+    if output is None and labels is None:
+        raise ParameterError("clean writes its result: give -o STATIC.pcd/.ply, --labels LABELS.npy, or both")
+    if output is not None:
+        if Path(output).suffix.lower() not in CLOUD_SUFFIXES:
+            raise ParameterError(f"{output}: the static map is written as .pcd or .ply")
+        check_writable(output)
+    if labels is not None:
+        if Path(labels).suffix.lower() != ".npy":
+            raise ParameterError(f"{labels}: labels are written as .npy (uint8 per point: 0 static, 1 dynamic)")
+        check_writable(labels)
+
+
+def write_cloud_points(path: str | os.PathLike, points: np.ndarray) -> None:
+    """Points as a binary .pcd or .ply (the export writers' layout), atomically."""
+    from voxtool.atomic import atomic_writer
+    from voxtool.io.export import CLOUD_FORMATS
+
+    header, rows = CLOUD_FORMATS[Path(path).suffix.lower().lstrip(".")]
+    with atomic_writer(path) as handle:
+        handle.write(header(len(points), False))
+        handle.write(rows(points, None))
+
+
+def write_labels(path: str | os.PathLike, dynamic: np.ndarray) -> None:
+    from voxtool.atomic import atomic_writer
+
+    with atomic_writer(path) as handle:
+        np.save(handle, dynamic.astype(np.uint8))
+
+
+def clean_source(source: str | os.PathLike, options: SourceOptions, params: CleanParams,
+                 output: str | os.PathLike | None = None, labels: str | os.PathLike | None = None,
+                 threads: int = 0, progress: bool | None = None) -> dict[str, Any]:
+    """`voxtool clean`: judge every point of `source`, write the static points and/or the labels."""
+    check_outputs(output, labels)
+    cleaned = clean_stream(open_source(source, options), params, threads, progress)
+    t0 = time.perf_counter()
+    if output is not None:
+        write_cloud_points(output, cleaned.points[~cleaned.dynamic])
+    if labels is not None:
+        write_labels(labels, cleaned.dynamic)
+    figures = cleaned.figures
+    figures["timings_s"]["write"] = round(time.perf_counter() - t0, 6)
+    figures["source"] = str(source)
+    return figures
+
+
+def accuracy(dynamic: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """The DynamicMap benchmark's scores of per-point labels against ground truth: static
+    accuracy SA (static points kept), dynamic accuracy DA (dynamic points removed) and their
+    geometric mean AA, in percent; SA or DA is 100 where there is nothing of its kind to judge."""
+    dynamic = np.asarray(dynamic, dtype=bool)
+    truth = np.asarray(truth, dtype=bool)
+    if dynamic.shape != truth.shape:
+        raise ParameterError(f"labels of {dynamic.shape[0]} points against a ground truth of {truth.shape[0]}")
+    static = ~truth
+    sa = 100.0 * float(np.count_nonzero(~dynamic & static)) / max(int(static.sum()), 1) if static.any() else 100.0
+    da = 100.0 * float(np.count_nonzero(dynamic & truth)) / max(int(truth.sum()), 1) if truth.any() else 100.0
+    return {"SA": sa, "DA": da, "AA": float(np.sqrt(sa * da))}
