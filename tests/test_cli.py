@@ -393,3 +393,19 @@ def test_thread_counts_write_the_same_snapshot_and_one_core_means_one_thread(tmp
         outs[label] = (json.loads(proc.stdout)["threads"], out.read_bytes())
     assert [outs[k][0] for k in ("one", "two", "default")] == [1, 2, 1]
     assert outs["one"][1] == outs["two"][1] == outs["default"][1]
+
+
+def test_every_commands_help_renders_its_example_blocks():
+    """click keeps a paragraph after a lone \\b line as written; a literal backslash-b (an escaped
+    one in a docstring) ran the examples together (issue 26)."""
+    import inspect
+
+    for name, command in main.commands.items():
+        code, out = run(name, "--help")
+        assert code == 0, out
+        assert "\\b" not in out and "\b" not in out, name
+        doc = inspect.getdoc(command.callback) or ""
+        if "\b" in doc:
+            block = doc.split("\b", 1)[1].strip("\n").split("\n\n")[0]
+            for line in block.splitlines():
+                assert line.strip() in {shown.strip() for shown in out.splitlines()}, (name, line)

@@ -70,7 +70,7 @@ def query(map_file, xyz, points, output, as_json):
     the depth of the leaf that answered (16: a single voxel; less: a pruned, larger leaf), at X Y Z
     (metres, map frame) or at every point of --points.
 
-    \\b
+    \b
       voxtool query map.vxm 1.0 2.5 0.3
       voxtool query map.vxm --json -- -4.2 1.0 0.3   (-- before negative coordinates)
       voxtool query map.vxm --points pts.csv -o answers.csv"""
