@@ -12,6 +12,7 @@ from conftest import cli
 
 from voxtool.clean import CleanParams, VoidMap, accuracy, clean_stream, cube_offsets, dynamic_points
 from voxtool.errors import ParameterError
+from voxtool.maps.base import PreparedScan
 from voxtool.sources import open_source
 from voxtool.synthetic import Box, Lidar, Scene, street, write_pcd_scans
 
@@ -70,7 +71,7 @@ def test_a_point_is_dynamic_when_its_voxel_and_its_cube_are_void():
     void = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3)  # a 7^3 void block
     void = void[~((void[:, 0] == 2) & (void[:, 1] == 2) & (void[:, 2] == 2))]  # with one hole
     codes = np.sort(morton_encode(coords_to_keys(void + 0.5, 1.0)))
-    vm.apply(type("P", (), {"packed": codes << 1, "seconds": 0.0, "steps": 0, "rays": 0})())
+    vm.apply(PreparedScan(codes << 1, 0, 0.0))
     rng = np.random.default_rng(1)
     points = rng.uniform(-5, 5, (5000, 3)).astype(np.float32)
     got = dynamic_points(vm, points)

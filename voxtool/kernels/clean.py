@@ -40,20 +40,32 @@ def ball_offsets(radius):
 
 
 @njit(cache=True, inline="always")
+def _moved(code, dx, dy, dz):
+    """The Morton code of the voxel `code` moved by (dx, dy, dz) voxels; -1 outside the key range."""
+    x = compact16(code) + dx
+    y = compact16(code >> 1) + dy
+    z = compact16(code >> 2) + dz
+    if x < 0 or y < 0 or z < 0 or x > 0xFFFF or y > 0xFFFF or z > 0xFFFF:
+        return np.int64(-1)
+    return morton3(x, y, z)
+
+
+@njit(cache=True, inline="always")
 def _brick_row(keys, brick, mask, insert):
-    """Row of `brick` in the open-addressing table (-1: absent and not inserted; -2: full)."""
+    """(row of `brick` in the open-addressing table, whether this call inserted it); row -1:
+    absent and not inserted, -2: the table is full."""
     s = _slot(brick, mask)
     for _ in range(keys.shape[0]):
         k = keys[s]
         if k == brick:
-            return s
+            return s, False
         if k == -1:
             if not insert:
-                return -1
+                return -1, False
             keys[s] = brick
-            return s
+            return s, True
         s = (s + 1) & mask
-    return -2
+    return -2, False
 
 
 @njit(cache=True, nogil=True)
@@ -77,24 +89,16 @@ def free_away_from_hits(packed, offsets, keys, bits):
             n_free += 1
             continue
         code = item >> 1
-        kx = compact16(code)
-        ky = compact16(code >> 1)
-        kz = compact16(code >> 2)
         for j in range(offsets.shape[0]):
-            x = kx + offsets[j, 0]
-            y = ky + offsets[j, 1]
-            z = kz + offsets[j, 2]
-            if x < 0 or y < 0 or z < 0 or x > 0xFFFF or y > 0xFFFF or z > 0xFFFF:
+            near = _moved(code, offsets[j, 0], offsets[j, 1], offsets[j, 2])
+            if near < 0:
                 continue
-            near = morton3(x, y, z)
             brick = near >> 9
             if brick != last_brick:
-                row = _brick_row(keys, brick, mask, True)
+                row, new = _brick_row(keys, brick, mask, True)
+                used += new
                 if row < 0 or used * 2 > keys.shape[0]:
                     return None
-                if bits[row, 0] == 0 and bits[row, 1] == 0 and bits[row, 2] == 0 and bits[row, 3] == 0 \
-                        and bits[row, 4] == 0 and bits[row, 5] == 0 and bits[row, 6] == 0 and bits[row, 7] == 0:
-                    used += 1
                 last_brick = brick
             inner = near & 511
             bits[row, inner >> 6] |= np.int64(1) << (inner & 63)
@@ -109,7 +113,7 @@ def free_away_from_hits(packed, offsets, keys, bits):
         code = item >> 1
         brick = code >> 9
         if brick != last_brick:
-            row = _brick_row(keys, brick, mask, False)
+            row = _brick_row(keys, brick, mask, False)[0]
             last_brick = brick
         inner = code & 511
         if row < 0 or (bits[row, inner >> 6] >> (inner & 63)) & 1 == 0:
@@ -117,19 +121,10 @@ def free_away_from_hits(packed, offsets, keys, bits):
             k += 1
     return out[:k]
 
+
 @njit(cache=True, nogil=True)
 def neighbour_codes(codes, offsets, out):
     """out[i, j]: the code of codes[i] moved by offsets[j]; -1 outside the key range."""
     for i in range(codes.shape[0]):
-        code = codes[i]
-        kx = compact16(code)
-        ky = compact16(code >> 1)
-        kz = compact16(code >> 2)
         for j in range(offsets.shape[0]):
-            x = kx + offsets[j, 0]
-            y = ky + offsets[j, 1]
-            z = kz + offsets[j, 2]
-            if x < 0 or y < 0 or z < 0 or x > 0xFFFF or y > 0xFFFF or z > 0xFFFF:
-                out[i, j] = -1
-            else:
-                out[i, j] = morton3(x, y, z)
+            out[i, j] = _moved(codes[i], offsets[j, 0], offsets[j, 1], offsets[j, 2])
