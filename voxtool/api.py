@@ -90,6 +90,9 @@ def encode_log(source, output, options: SourceOptions, params: MapParams, sensor
     if Path(output).suffix.lower() != ".mcap":
         raise ParameterError(f"{output}: packet logs are written as .mcap")
     check_writable(output)
+    if backend_options.get("decay_half_life") is not None:
+        # a packet carries the voxels a scan updated; decay changes voxels no scan touched
+        raise ParameterError("decay_half_life is a build option: packet logs carry each scan's updates, not decay")
     mapper = make_backend(backend_name, params, sensor, **backend_options)
     stream = open_source(source, options)
     info = {"source": str(source), "backend": backend_name,

@@ -126,12 +126,13 @@ def street(n_scans: int = 30, seed: int = 0, lidar: Lidar | None = None) -> Scen
 
 def write_pcd_scans(scene: Scene, directory: str | Path) -> np.ndarray:
     """Write the scene as a PCD directory voxtool reads (sensor-frame points, VIEWPOINT = pose)
-    and return the ground-truth dynamic labels of every point, in read order."""
+    with poses.txt (TUM rows, the scan times: for --poses) and return the ground-truth dynamic
+    labels of every point, in read order."""
     from voxtool.io.export import pcd_header, pcd_rows
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    labels = []
+    labels, poses = [], []
     for i, (points, origin, yaw, moving) in enumerate(scene.scans()):
         c, s = np.cos(yaw), np.sin(yaw)
         rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -139,4 +140,7 @@ def write_pcd_scans(scene: Scene, directory: str | Path) -> np.ndarray:
         viewpoint = (*origin, np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
         (directory / f"{i:06d}.pcd").write_bytes(pcd_header(len(local), False, viewpoint) + pcd_rows(local, None))
         labels.append(moving)
+        poses.append(f"{i / scene.rate_hz:.6f} {origin[0]:.9f} {origin[1]:.9f} {origin[2]:.9f} "
+                     f"0 0 {np.sin(yaw / 2):.12f} {np.cos(yaw / 2):.12f}\n")
+    (directory / "poses.txt").write_text("".join(poses))
     return np.concatenate(labels)

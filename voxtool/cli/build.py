@@ -31,6 +31,10 @@ from voxtool.cli.common import (
                    "in /): one map per source, named after it. With --sharded: the sharded map's directory.")
 @backend_options
 @scan_options
+@click.option("--decay", type=float, metavar="SECONDS",
+              help="octree: let the map forget: every voxel's log-odds halve towards unknown over SECONDS of scan "
+                   "time, and a voxel within 0.01 log-odds of unknown is forgotten (docs/decay.md). Needs scan "
+                   "times. Default: none (the map is OctoMap's).")
 @click.option("--share", type=click.Path(path_type=Path), help="hashmap: write newly occupied voxels (ring buffer) as a packet log.")
 @click.option("--ring", default=3, show_default=True, type=int, help="hashmap --share: frames per broadcast (k).")
 @cluster_options
@@ -43,7 +47,7 @@ from voxtool.cli.common import (
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @plot_option("each scan's latency and the map's size over the scans (one map built in this process)")
 @handle_errors
-def build(sources, sample, output, share, ring, workers, scheduler, one_map, sharded, as_json, progress, plot, **kw):
+def build(sources, sample, output, decay, share, ring, workers, scheduler, one_map, sharded, as_json, progress, plot, **kw):
     """Build an occupancy map from SOURCE: a directory of PCD (or PLY + --poses) scans, a single
     PCD/PLY file, a ROS 2 .mcap file, or an OctoMap .graph file.
 
@@ -61,6 +65,8 @@ def build(sources, sample, output, share, ring, workers, scheduler, one_map, sha
         sources = (resolve_source(None if not sources else sources[0], sample),)
     options, params, sensor = scan_setup(kw)
     backend, extra = backend_setup(kw)
+    if decay is not None:
+        extra["decay_half_life"] = decay
     # a trailing slash, an existing directory, or several sources without .vxm: one map per source
     to_dir = output is not None and not sharded and not one_map and (
         output.endswith("/") or Path(output).is_dir() or (len(sources) > 1 and Path(output).suffix.lower() != ".vxm"))
@@ -73,8 +79,9 @@ def build(sources, sample, output, share, ring, workers, scheduler, one_map, sha
         if not dask:
             raise ParameterError("one map from several sources, or a sharded map, is built by Dask workers: "
                                  "give --workers N (a local cluster) or --scheduler ADDRESS")
-        if backend != "octree" or share is not None:
-            raise ParameterError(f"a map built by Dask workers uses the octree backend (not '{backend}'), without --share")
+        if backend != "octree" or share is not None or "decay_half_life" in extra:
+            raise ParameterError(f"a map built by Dask workers uses the octree backend (not '{backend}'), without "
+                                 "--share or --decay")
         if sharded and output is None:
             raise ParameterError("--sharded needs -o DIRECTORY")
         from voxtool.api import build_one_map

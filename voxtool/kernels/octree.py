@@ -57,17 +57,26 @@ def brick_runs(items, shift):
 
 
 @njit(cache=True, nogil=True)
-def apply_bricks(vals, slots, fresh, init, starts, lo, hi, items, values, mode, hit, miss, cmin, cmax):
+def apply_bricks(vals, slots, fresh, init, starts, lo, hi, items, values, mode, hit, miss, cmin, cmax, forget):
     """Apply the updates of bricks lo..hi (items[starts[k]:starts[k + 1]] go to brick slots[k]).
     A brick with fresh[k] is first filled with init[k] (NaN: unknown, or the value of the coarse
     leaf it was split from). mode ADD: OctoMap's clamped log-odds update, a new voxel starting
-    at 0. mode SET: the voxel takes values[i]."""
+    at 0; a decaying map (forget > 0) treats a value below `forget` as unknown, forgotten by an
+    earlier decay step (0 for OctoMap's: never). mode SET: the voxel takes values[i]."""
     for k in range(lo, hi):
         base = slots[k] * BRICK
         if fresh[k]:
             for j in range(BRICK):
                 vals[base + j] = init[k]
-        if mode == ADD:
+        if mode == ADD and forget > 0:  # a separate loop: OctoMap's own keeps its speed
+            for i in range(starts[k], starts[k + 1]):
+                item = items[i]
+                at = base + ((item >> 1) & (BRICK - 1))
+                v = vals[at]
+                if v != v or abs(v) < forget:
+                    v = np.float32(0.0)
+                vals[at] = min(max(v + (hit if (item & 1) else miss), cmin), cmax)
+        elif mode == ADD:
             for i in range(starts[k], starts[k + 1]):
                 item = items[i]
                 at = base + ((item >> 1) & (BRICK - 1))
@@ -291,3 +300,15 @@ def voxel_values(codes, prefixes, prefix_rows, directory, vals, shift, out_value
             slot = directory[row, brick & (per_shard - 1)] if row >= 0 else -1
         out_slot[i] = slot
         out_value[i] = vals[slot * BRICK + (codes[i] & (BRICK - 1))] if slot >= 0 else np.nan
+
+
+
+@njit(cache=True, nogil=True)
+def decay_bricks(vals, lo, hi, factor, forget):
+    """Scale the log-odds of brick slots lo..hi by `factor` and forget (NaN) those whose
+    |log-odds| is then below `forget` (NaN stays NaN)."""
+    for k in range(lo, hi):
+        base = k * BRICK
+        for j in range(BRICK):
+            v = vals[base + j] * factor
+            vals[base + j] = np.float32(np.nan) if abs(v) < forget else v

@@ -49,6 +49,7 @@ class PreparedScan:
     scan: Scan | None = None  # for backends whose ray casting depends on the map (hash map)
     index: int = -1  # the scan's index (parameter schedules), -1 when not from a scan stream
     brick_runs: tuple | None = None  # (distinct 8^3-brick codes, where each one's updates start) in packed
+    source: str = ""  # where the scan came from (for messages)
 
 
 class MapBackend(Protocol):

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from voxtool.config import MapParams, SensorModel
+from voxtool.errors import ParameterError, SourceError
 from voxtool.kernels import octree as K
 from voxtool.kernels.raycast import (
     BRICK_BITS,
@@ -26,6 +27,7 @@ from voxtool.maps.shards import DEFAULT_SHARD_DEPTH, ShardedOctree
 from voxtool.parallel import resolve_threads, run_parts
 from voxtool.sources.scan import Scan
 
+FORGET_BELOW = 0.01  # log-odds: a decaying voxel nearer than this to unknown (p within 0.0025 of 0.5) is forgotten
 SMALL_SCAN = 2_000  # points; below this one thread traces the whole scan
 RAYS_PER_PART = 1_000  # at least this many rays per thread: a hand-off costs ~0.1 ms
 BRICKS_PER_PART = 2_048  # likewise, bricks per thread when expanding them to voxel updates
@@ -154,24 +156,52 @@ def warm_up_kernels(merging: bool = False) -> None:
 
 
 class OctreeMap:
-    """OctoMap-exact occupancy octree (see docs/backends.md)."""
+    """OctoMap-exact occupancy octree (see docs/backends.md). With decay_half_life (seconds of
+    scan time) every known voxel's log-odds halve towards unknown over that time before each
+    scan's updates, and voxels that come within FORGET_BELOW of unknown are forgotten
+    (docs/decay.md); without it (the default) the map is OctoMap's."""
 
     name = "octree"
 
     def __init__(self, params: MapParams, sensor: SensorModel, threads: int = 0,
-                 shard_depth: int = DEFAULT_SHARD_DEPTH) -> None:
+                 shard_depth: int = DEFAULT_SHARD_DEPTH, decay_half_life: float | None = None) -> None:
+        if decay_half_life is not None and not decay_half_life > 0:
+            raise ParameterError(f"decay half-life must be a positive number of seconds, not {decay_half_life}")
         self.params = params
         self.sensor = sensor
         self.threads = resolve_threads(threads)
         self.shard_depth = shard_depth
+        self.decay_half_life = decay_half_life
+        self.clock: tuple[int, int] | None = None  # (stamp_ns, index) of the last scan applied, when decaying
         self.tree = ShardedOctree(shard_depth, self.threads)
 
     def warm_up(self) -> None:
         warm_up_kernels(self.params.merge_rays)
+        if self.decay_half_life is not None:
+            tree = ShardedOctree()
+            tree.apply(np.array([3], dtype=np.int64), K.ADD, hit=0.85, miss=-0.4, cmin=-2.0, cmax=3.5)
+            tree.fade(0.5, FORGET_BELOW)
+            tree.apply(np.array([3], dtype=np.int64), K.ADD, hit=0.85, miss=-0.4, cmin=-2.0, cmax=3.5)
+            tree.settle()
 
     def prepare(self, scan: Scan) -> PreparedScan:
         """Ray casting: independent of the map, so it may run ahead on another thread."""
-        return prepare_scan(scan, self.params, self.threads)
+        prepared = prepare_scan(scan, self.params, self.threads)
+        prepared.stamp_ns, prepared.index, prepared.source = scan.stamp_ns, scan.index, scan.source
+        return prepared
+
+    def decay_to(self, stamp_ns: int, index: int = -1, source: str = "") -> None:
+        """Let the map fade from the last scan's time to `stamp_ns`: every log-odds times
+        2^(-dt / half-life), and voxels within FORGET_BELOW of unknown are forgotten."""
+        last = self.clock
+        self.clock = (stamp_ns, index)
+        if last is None:  # the first scan: nothing to fade yet
+            return
+        if stamp_ns <= last[0]:
+            raise SourceError(f"{source or 'scan'}: scan {index} has time {stamp_ns * 1e-9:.9f} s, not after scan "
+                              f"{last[1]}'s {last[0] * 1e-9:.9f} s; decay needs increasing scan times (a PCD directory "
+                              "takes them from --poses with a time column)")
+        self.tree.fade(2.0 ** (-(stamp_ns - last[0]) * 1e-9 / self.decay_half_life), FORGET_BELOW)
 
     def apply_updates(self, items: np.ndarray, mode: int = K.ADD, values: np.ndarray | None = None,
                       brick_runs: tuple | None = None) -> None:
@@ -185,6 +215,8 @@ class OctreeMap:
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         """Tree update; prepared scans must be applied in scan order."""
         t0 = time.perf_counter()
+        if self.decay_half_life is not None:
+            self.decay_to(prepared.stamp_ns, prepared.index, prepared.source)
         self.apply_updates(prepared.packed, brick_runs=prepared.brick_runs)
         return IntegrateTiming(raycast=prepared.seconds, update=time.perf_counter() - t0,
                                voxel_updates=int(prepared.packed.shape[0]), ray_steps=prepared.steps,
@@ -223,7 +255,11 @@ class OctreeMap:
         self.tree.load(Leaves(arrays["leaf_codes"], arrays["leaf_depths"], arrays["leaf_values"]))
 
     def extra_meta(self) -> dict[str, Any]:
-        return {}  # threads and shard depth change how fast a map is built, never what it holds
+        # threads and shard depth change how fast a map is built, never what it holds
+        return {} if self.decay_half_life is None else {"decay_half_life": self.decay_half_life}
 
     def extra_stats(self) -> dict[str, Any]:
-        return {"pool_bricks": self.tree.n_bricks, "pool_shards": self.tree.n_rows, "shard_depth": self.tree.depth}
+        out = {"pool_bricks": self.tree.n_bricks, "pool_shards": self.tree.n_rows, "shard_depth": self.tree.depth}
+        if self.decay_half_life is not None:
+            out["decay_half_life_s"] = self.decay_half_life
+        return out

@@ -30,6 +30,7 @@ from voxtool.parallel import run_parts
 DEFAULT_SHARD_DEPTH = 10  # shards of 64^3 voxels, 512 bricks: a 2 KiB directory row each
 MIN_SHARD_DEPTH = 8  # a directory row holds 8^(13 - depth) entries: 128 KiB at depth 8
 SMALL_BATCH = 20_000  # updates; below this one thread applies a batch (a hand-off costs more)
+RESETTLE_BELOW = 2.0**-40  # a decaying map's pending scale: below it, stored log-odds near float32's range
 _NONE_F32 = np.zeros(0, dtype=np.float32)
 _EMPTY = Leaves(np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.float32))
 
@@ -116,12 +117,16 @@ class ShardedOctree:
         self.prefixes = np.zeros(0, dtype=np.int64)  # sorted prefixes of the shards
         self.prefix_rows = np.zeros(0, dtype=np.int64)  # the directory row of each
         self.coarse = _EMPTY  # leaves coarser than a brick (a loaded map's), Morton order
+        self.scale = 1.0  # a decaying map's stored log-odds times this are its log-odds (fade)
+        self.forget = 0.0  # ... and a voxel whose |log-odds| is below this is unknown
+        self._unsettled = False  # decay steps or updates since the last settle (decaying maps only)
         self._derived: _Derived | None = None
 
     # -- moving between processes -----------------------------------------------------------
     def bricks(self) -> tuple[np.ndarray, np.ndarray]:
         """(brick codes, their 512 log-odds each) in slot order: the map's whole content with
         `coarse` (what a Dask worker sends, or what put_bricks takes)."""
+        self.settle()
         n = self.n_bricks
         return self.brick_code[:n].copy(), self.arena.vals[: n * K.BRICK].reshape(n, K.BRICK).copy()
 
@@ -129,6 +134,7 @@ class ShardedOctree:
         """Add bricks this map does not hold yet (another part of the same map)."""
         if codes.shape[0] == 0:
             return
+        self.settle()
         self._derived = None
         order = np.argsort(codes, kind="stable")
         slots, fresh, _ = self._slots_for(codes[order])
@@ -232,15 +238,51 @@ class ShardedOctree:
             items = items[by_brick]
             values = values[by_brick] if values.shape[0] else values
             bricks, starts, _ = K.brick_runs(items, shift)
+        if mode != K.ADD:
+            self.settle()
         slots, fresh, init = self._slots_for(bricks)
-        consts = np.float32(hit), np.float32(miss), np.float32(cmin), np.float32(cmax)
+        s = self.scale  # a decaying map's updates, in its stored units (fade)
+        consts = (np.float32(hit / s), np.float32(miss / s), np.float32(cmin / s), np.float32(cmax / s),
+                  np.float32(self.forget / s))
+        self._unsettled |= self.forget > 0  # an update may leave a voxel below forget
         runs = balanced_runs(starts, 1 if n < SMALL_BATCH else self.threads)
         vals = self.arena.vals
         run_parts(self.threads, lambda r: K.apply_bricks(vals, slots, fresh, init, starts, r[0], r[1], items, values,
                                                          mode, *consts), runs)
 
+    def fade(self, factor: float, forget: float) -> None:
+        """A decay step: every log-odds times `factor`, then a voxel whose |log-odds| is below
+        `forget` is forgotten (unknown); reading the map is a step of factor 1. Lazily: the
+        bricks hold log-odds / scale and updates are scaled to match (one division per update,
+        not a pass over the map per scan); an update treats a stored value below forget / scale
+        as unknown (the step before it forgot it); the bricks are settled (scaled and forgotten
+        for real) before anything reads them, and when the scale nears float32's range."""
+        self._derived = None
+        self.scale *= factor
+        self.forget = float(forget)
+        self._unsettled = True
+        if self.scale < RESETTLE_BELOW:
+            self.settle()
+
+    def settle(self) -> None:
+        """Apply the pending decay to every brick and coarse leaf (fade)."""
+        if not self._unsettled:
+            return
+        self._derived = None
+        factor, forget = np.float32(self.scale), np.float32(self.forget)
+        self.scale, self._unsettled = 1.0, False
+        if self.coarse.codes.shape[0]:
+            values = self.coarse.values * factor
+            keep = np.abs(values) >= forget
+            self.coarse = Leaves(self.coarse.codes[keep], self.coarse.depths[keep], values[keep])
+        n = self.n_bricks
+        vals = self.arena.vals
+        run_parts(self.threads, lambda r: K.decay_bricks(vals, r[0], r[1], factor, forget),
+                  balanced_runs(np.arange(n + 1), 1 if n * K.BRICK < SMALL_BATCH else self.threads))
+
     def load(self, leaves: Leaves) -> None:
         """Rebuild from Morton-ordered, non-overlapping leaves (a snapshot, a .bt file)."""
+        self.settle()
         self._derived = None
         coarse = leaves.depths < K.BRICK_DEPTH
         if coarse.any():
@@ -252,13 +294,14 @@ class ShardedOctree:
         slots, fresh, init = self._slots_for(bricks)
         vals = self.arena.vals
         K.apply_bricks(vals, slots, fresh, init, np.zeros(bricks.shape[0] + 1, np.int64), 0, bricks.shape[0],
-                       leaves.codes, _NONE_F32, K.ADD, np.float32(0), np.float32(0), np.float32(0), np.float32(0))
+                       leaves.codes, _NONE_F32, K.ADD, *[np.float32(0)] * 5)
         K.fill_leaves(vals, np.repeat(slots, np.diff(starts)), leaves.codes, leaves.depths,
                       np.ascontiguousarray(leaves.values, dtype=np.float32))
 
     # -- reading ---------------------------------------------------------------------------
     def _lookup(self, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(log-odds, brick slot) at finest-level codes: NaN / -1 where no brick holds one."""
+        self.settle()
         codes = np.ascontiguousarray(codes, dtype=np.int64)
         value = np.empty(codes.shape[0], dtype=np.float32)
         slot = np.empty(codes.shape[0], dtype=np.int64)
@@ -303,6 +346,7 @@ class ShardedOctree:
         return value, depth
 
     def _derive(self) -> _Derived:
+        self.settle()
         if self._derived is not None:
             return self._derived
         slots = np.argsort(self.brick_code[: self.n_bricks], kind="stable")
