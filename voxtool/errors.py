@@ -43,6 +43,12 @@ class RegressionError(VoxtoolError):
     exit_code = 6
 
 
+class ChangeLimitError(VoxtoolError):
+    """`diff --max-changed` found more voxels that changed state than allowed."""
+
+    exit_code = 7
+
+
 def mcap_problem(err: Exception) -> str:
     """What is wrong with an MCAP file, from the mcap library's exception, in plain words."""
     import struct

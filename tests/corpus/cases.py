@@ -310,7 +310,7 @@ CASES = [
     ("snapshot header beyond file", snapshot_case(lambda b: b[:12] + struct.pack("<I", 1 << 19) + b[16:]), 5, "header length 524288 exceeds the file"),
     ("snapshot declares 1 TiB array", snapshot_case(declared_size_too_large), 5, "declares 1099511627776 bytes for shape [137438953472]"),
     ("snapshot unsorted leaves", snapshot_case(snapshot_with(arrays=lambda a: a.update(leaf_codes=a["leaf_codes"][::-1].copy(), leaf_depths=a["leaf_depths"][::-1].copy(), leaf_values=a["leaf_values"][::-1].copy()))), 5, "leaves are not sorted or overlap"),
-    ("snapshot leaf depth 17", snapshot_case(snapshot_with(arrays=lambda a: a.update(leaf_depths=np.full_like(a["leaf_depths"], 17)))), 5, "leaf depth 17 exceeds 16"),
+    ("snapshot leaf depth 17", snapshot_case(snapshot_with(arrays=lambda a: a.update(leaf_depths=np.full_like(a["leaf_depths"], 17)))), 5, "leaf depth 17 is not 0..16"),
     ("snapshot NaN log-odds", snapshot_case(snapshot_with(arrays=lambda a: a.update(leaf_values=np.full_like(a["leaf_values"], np.nan)))), 5, "leaf log-odds not finite"),
     ("snapshot unknown backend", snapshot_case(snapshot_with(header_edit=lambda h: h.update(backend="quadtree"))), 5, "backend 'quadtree' is not one of"),
     ("snapshot bad resolution", snapshot_case(snapshot_with(header_edit=lambda h: h["map_params"].update(resolution=-1))), 5, "resolution=-1 must lie in"),

@@ -23,6 +23,7 @@ from voxtool.cli.cache_bench import cache_bench_cmd  # noqa: E402
 from voxtool.cli.clean import clean  # noqa: E402
 from voxtool.cli.common import BACKEND_NAMES, SAMPLE_DIR  # noqa: E402
 from voxtool.cli.decode import decode  # noqa: E402
+from voxtool.cli.diff import diff  # noqa: E402
 from voxtool.cli.encode import encode  # noqa: E402
 from voxtool.cli.export import export  # noqa: E402
 from voxtool.cli.merge import merge  # noqa: E402
@@ -60,11 +61,12 @@ def main() -> None:
     """Turn LiDAR scan streams into 3D occupancy voxel maps, measure and share them.
 
     Exit codes: 0 ok, 1 error, 2 bad parameter, 3 bad source, 4 point outside the key range,
-    5 bad map/packet file, 6 regression found by `stats --compare`, 130 interrupted.
+    5 bad map/packet file, 6 regression found by `stats --compare`, 7 more changes than
+    `diff --max-changed`, 130 interrupted.
     """
 
 
-for _command in (build, clean, cache_bench_cmd, encode, decode, merge, query, stats, export, view):
+for _command in (build, clean, cache_bench_cmd, encode, decode, merge, query, stats, diff, export, view):
     main.add_command(_command)
 
 

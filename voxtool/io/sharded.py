@@ -123,12 +123,9 @@ def read_manifest(path: str | os.PathLike) -> dict:
     return manifest
 
 
-def iter_parts(path: str | os.PathLike, check_hash: bool = True) -> Iterator[tuple[dict, object]]:
-    """(manifest entry, loaded OctreeMap) of every part in turn, each checked against the
-    manifest (size, SHA-256) before it is read."""
-    from voxtool.io.mapfile import load_map
-
-    path = Path(path)
+def _part_files(path: Path, check_hash: bool) -> Iterator[tuple[dict, Path]]:
+    """(manifest entry, file) of every part in turn, each checked against the manifest (size,
+    SHA-256) before it is read."""
     for entry in read_manifest(path)["parts"]:
         file = path / entry["file"]
         if not file.is_file():
@@ -137,8 +134,27 @@ def iter_parts(path: str | os.PathLike, check_hash: bool = True) -> Iterator[tup
             raise FormatError(f"{file}: {file.stat().st_size} bytes, the manifest says {entry.get('bytes')}")
         if check_hash and _sha256(file) != entry.get("sha256"):
             raise FormatError(f"{file}: content differs from the manifest's SHA-256")
+        yield entry, file
+
+
+def iter_parts(path: str | os.PathLike, check_hash: bool = True) -> Iterator[tuple[dict, object]]:
+    """(manifest entry, loaded OctreeMap) of every part in turn, each checked against the
+    manifest (size, SHA-256) before it is read."""
+    from voxtool.io.mapfile import load_map
+
+    for entry, file in _part_files(Path(path), check_hash):
         backend, _ = load_map(file)
         yield entry, backend
+
+
+def iter_part_leaves(path: str | os.PathLike, check_hash: bool = True) -> Iterator[tuple[dict, object, float]]:
+    """(manifest entry, leaves, threshold log-odds) of every part in turn, checked as
+    iter_parts checks them, without rebuilding each part's tree (mapfile.read_leaves)."""
+    from voxtool.io.mapfile import read_leaves
+
+    for entry, file in _part_files(Path(path), check_hash):
+        leaves, _, threshold, _ = read_leaves(file)
+        yield entry, leaves, threshold
 
 
 def load_sharded(path: str | os.PathLike):

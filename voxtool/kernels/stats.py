@@ -36,3 +36,27 @@ def leaf_summary(codes, depths, values, threshold):
         lo[:] = 0
         hi[:] = 0
     return occ, free, lo, hi
+
+
+@njit(cache=True, nogil=True)
+def leaf_problem(codes, depths, values):
+    """What is wrong with a leaf table, in one pass: (problem, leaf), problem 0 nothing, 1 a
+    depth above 16, 2 a code outside the 48-bit key space, 3 a code not aligned to its depth,
+    4 not sorted or overlapping, 5 a log-odds not finite (the first problem found)."""
+    end = np.int64(0)
+    for i in range(codes.shape[0]):
+        d = np.int64(depths[i])
+        if d > 16 or d < 0:
+            return 1, i
+        span = np.int64(1) << np.int64(3 * (16 - d))
+        c = codes[i]
+        if c < 0 or c + span > (np.int64(1) << np.int64(48)):
+            return 2, i
+        if c & (span - 1):
+            return 3, i
+        if i > 0 and c < end:
+            return 4, i
+        end = c + span
+        if not np.isfinite(values[i]):
+            return 5, i
+    return 0, 0
