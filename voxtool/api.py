@@ -242,12 +242,27 @@ def exporter(output: Path):
     return writer
 
 
+def crop_keys(box, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """The key box of the voxels whose centres lie in a metric box (xmin, ymin, zmin, xmax,
+    ymax, zmax), inclusive."""
+    from voxtool.keys import TREE_MAX_VAL
+
+    box = np.asarray(box, dtype=np.float64)
+    if box.shape != (6,) or not np.all(np.isfinite(box)) or np.any(box[:3] > box[3:]):
+        raise ParameterError(f"--crop {','.join(f'{v:g}' for v in np.ravel(box))}: give xmin,ymin,zmin,xmax,ymax,zmax "
+                             "in metres, each min at most its max")
+    lo = np.ceil(box[:3] / resolution - 0.5).astype(np.int64) + TREE_MAX_VAL
+    hi = np.floor(box[3:] / resolution - 0.5).astype(np.int64) + TREE_MAX_VAL
+    return np.clip(lo, 0, 2 * TREE_MAX_VAL - 1), np.clip(hi, -1, 2 * TREE_MAX_VAL - 1)
+
+
 def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False,
                progress: bool | None = False, ros2_only: bool = False, view: str | None = None,
-               slice_z: float | None = None) -> dict:
+               slice_z: float | None = None, crop: tuple | None = None) -> dict:
     """Write a map (.vxm, .bt or a sharded map) as .bt, .ply, .pcd, .png or .mcap; returns what
-    was written. A sharded map is read part by part, except for .mcap and .vxm (whole).
-    `view` and `slice_z` are for pictures (io.picture)."""
+    was written. A sharded map is read part by part, except for .mcap and .vxm and with `crop`
+    (whole). `view` and `slice_z` are for pictures (io.picture); `crop` (xmin, ymin, zmin, xmax,
+    ymax, zmax, metres): only the voxels whose centres lie in that box."""
     from voxtool.atomic import check_writable
     from voxtool.io.sharded_export import STREAMED, export_sharded
     from voxtool.progress import bar
@@ -267,10 +282,18 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
         extra = {"view": view or "top", "slice_z": slice_z}
     if kind == ".png":
         extra["label"] = Path(path).name
-    if Path(path).is_dir() and kind in STREAMED:
+    if crop is not None:
+        crop_keys(crop, 1.0)  # a bad box is refused before the map is read
+    if Path(path).is_dir() and kind in STREAMED and crop is None:
         return export_sharded(path, output, include_free, progress, **extra)  # part by part
     with bar(2, f"export {output.suffix}", progress, "step") as steps:
         leaves, res, thr, _ = load_leaves(path)
+        if crop is not None:
+            from voxtool.maps.tree import crop as crop_leaves
+
+            leaves = crop_leaves(leaves, *crop_keys(crop, res))
+            if kind == ".png" and len(leaves) == 0:
+                raise ParameterError(f"{path}: no voxel of the map lies in --crop {','.join(f'{v:g}' for v in crop)}")
         steps.update(1)
         written = writer(output, leaves, res, thr, include_free, **extra)
         steps.update(1)

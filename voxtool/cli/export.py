@@ -23,18 +23,30 @@ from voxtool.cli.common import emit, handle_errors
               help=".png: look from above (default), from the front (along +y) or the side (along -x).")
 @click.option("--slice", "slice_z", type=float, default=None, metavar="Z",
               help=".png: only the voxel layer holding height Z (metres), seen from above.")
+@click.option("--crop", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
+              help="Only the voxels whose centres lie in this box (metres), for every output type (OctoMap "
+                   "edit_octree's crop). A sharded map is then read whole.")
 @click.option("--json", "as_json", is_flag=True, help="Print what was written as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def export(map_file, output, include_free, ros2_only, view, slice_z, as_json, progress):
+def export(map_file, output, include_free, ros2_only, view, slice_z, crop, as_json, progress):
     """Export a map snapshot (.vxm) or an OctoMap .bt: .bt (OctoMap binary, the max-likelihood
     tree), .ply/.pcd (voxel centres), .png (a picture with colour bar, legend, scale bar and axes
     in metres; --view, --slice), .mcap (for Foxglove, RViz and rosbags), or import an OctoMap .bt
     as a snapshot (.vxm). A sharded map (a directory) is exported part by part (.bt, .ply, .pcd,
     .png), in the memory of its largest part."""
     from voxtool.api import export_map
+    from voxtool.errors import ParameterError
 
-    written = export_map(map_file, output, include_free, progress, ros2_only, view, slice_z)
+    box = None
+    if crop is not None:
+        try:
+            box = tuple(float(v) for v in crop.split(","))
+        except ValueError:
+            raise ParameterError(f"--crop {crop}: give six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres)") from None
+        if len(box) != 6:
+            raise ParameterError(f"--crop {crop}: give six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres)")
+    written = export_map(map_file, output, include_free, progress, ros2_only, view, slice_z, box)
     rows = [(key.replace("_", " "), f"{value:,}" if isinstance(value, int) else str(value))
             for key, value in written.items() if value is not None]
     emit(written, as_json, rows, written=output)

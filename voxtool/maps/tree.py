@@ -33,3 +33,29 @@ def max_likelihood(leaves: Leaves, threshold_log: float) -> Leaves:
     same voxels."""
     ml = np.where(leaves.values > np.float32(threshold_log), np.float32(1.0), np.float32(-1.0)).astype(np.float32)
     return collapse(Leaves(leaves.codes, leaves.depths, ml))
+
+
+def crop(leaves: Leaves, lo_key: np.ndarray, hi_key: np.ndarray) -> Leaves:
+    """The voxels of `leaves` whose keys lie in the box lo_key..hi_key (inclusive, per axis), as
+    leaves: a leaf inside is kept whole, one outside dropped, one across the box's faces split
+    into its 8 children until each is inside or outside (OctoMap's edit_octree crop; the tree
+    stays canonical, since a split leaf never keeps all 8 children)."""
+    from voxtool.keys import leaf_edge, morton_decode
+
+    lo_key, hi_key = np.asarray(lo_key, np.int64), np.asarray(hi_key, np.int64)
+    kept = []
+    codes, depths, values = leaves.codes, leaves.depths, leaves.values
+    while codes.shape[0]:
+        first = morton_decode(codes).astype(np.int64)
+        last = first + leaf_edge(depths)[:, None].astype(np.int64) - 1
+        inside = np.all((first >= lo_key) & (last <= hi_key), axis=1)
+        touches = np.all((last >= lo_key) & (first <= hi_key), axis=1)
+        kept.append(Leaves(codes[inside], depths[inside], values[inside]))
+        across = touches & ~inside  # never a single voxel: it is inside or outside
+        children = np.int64(1) << (3 * (15 - depths[across].astype(np.int64)))
+        codes = (codes[across][:, None] + np.arange(8, dtype=np.int64) * children[:, None]).ravel()
+        depths = np.repeat(depths[across] + np.uint8(1), 8)
+        values = np.repeat(values[across], 8)
+    out = Leaves(*(np.concatenate([getattr(k, f) for k in kept]) for f in ("codes", "depths", "values")))
+    order = np.argsort(out.codes, kind="stable")
+    return Leaves(out.codes[order], out.depths[order], out.values[order])
