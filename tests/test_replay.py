@@ -71,3 +71,23 @@ def test_decode_view_is_refused_with_relay_and_for_another_suffix(sample_logs, t
     assert code == 2 and "--view" in err and ".mcap" in err
     code, _, err = cli("decode", log, "--view", tmp_path / "v.mcap", "--relay")
     assert code == 2 and not (tmp_path / "v.mcap").exists()
+
+
+def test_view_period_spaces_the_messages(sample_logs, tmp_path):
+    """Messages at the first packet time, then at the first packet time at least a period after
+    the previous message, then the last packet's; period 0: one per distinct packet time."""
+    logs = [sample_logs["a"][0], sample_logs["b"][0]]
+    times = sorted({p.stamp_ns for log in logs for p in packets_of(log)})
+    assert len(times) > 4
+    for period in (0.0, 0.25, 1.0):
+        view = tmp_path / f"v{period}.mcap"
+        code, _, err = cli("merge", *logs, "--view", view, "--view-period", period)
+        assert code == 0, err
+        _, stamps = _apply_updates(view)
+        expect = [times[0]]
+        for t in times[1:]:
+            if t - expect[-1] >= period * 1e9:
+                expect.append(t)
+        if expect[-1] != times[-1]:
+            expect.append(times[-1])
+        assert stamps == expect, period

@@ -80,7 +80,8 @@ def check_plot(plot) -> None:
 def view_options(func):
     """--view OUT.mcap / --view-period: the replay of decode and merge (voxtool.codec.replay)."""
     func = click.option("--view-period", default=1.0, show_default=True, type=click.FloatRange(min=0.0),
-                        help="--view: seconds of packet time between SceneUpdates (0: one per packet).")(func)
+                        help="--view: at least this many seconds of packet time between SceneUpdates (0: one per "
+                             "distinct packet time).")(func)
     return click.option("--view", type=click.Path(path_type=Path), metavar="OUT.mcap",
                         help="Also write the map as it grew, for Foxglove: foxglove.SceneUpdate messages over packet "
                              "time, each robot's voxels in its own colour (docs/viewing.md).")(func)

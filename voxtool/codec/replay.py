@@ -1,7 +1,9 @@
 """How a map was shared and fused, for a viewer (`decode --view` / `merge --view OUT.mcap`).
 
 An MCAP of foxglove.SceneUpdate messages (Foxglove's protobuf schema package) on `/voxtool/fusion`,
-one message per `period` of packet time (and one after the last packet), in fusion order. Each
+in fusion order. A message holds every packet up to its time and is stamped with the last one's:
+the first at the first packet time, each next one at the first packet time at least `period`
+after it (0: every distinct packet time), and one at the last packet. Each
 robot's occupied voxels are drawn as cubes in that robot's colour: a voxel belongs to the robot
 whose packet set it last (the fusion rule). Re-sending a robot's whole map at every step would
 cost its full size each time, so the voxels are grouped in blocks of 16^3 and a message carries
@@ -42,10 +44,10 @@ class Replay:
 
     def packet(self, packet, codes: np.ndarray) -> None:
         """Record one fused packet (fuse's on_packet)."""
-        if self.last_emit is not None and packet.stamp_ns - self.last_emit >= self.period_ns:
+        # what is pending goes out once a later packet shows that its time is complete
+        if self.dirty and packet.stamp_ns != self.stamp and (
+                self.last_emit is None or self.stamp - self.last_emit >= self.period_ns):
             self._emit()
-        if self.last_emit is None:
-            self.last_emit = packet.stamp_ns
         self.resolution = packet.resolution
         self.stamp = packet.stamp_ns
         if packet.robot not in self.robots:
