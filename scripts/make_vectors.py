@@ -45,6 +45,8 @@ def sharded() -> None:
 
     from voxtool.distbuild import partition_of
     from voxtool.io.sharded import FORMAT, MANIFEST, VERSION, part_name
+    from voxtool.maps.base import Leaves
+    from voxtool.stats import leaf_stats
 
     out = OUT / "sharded_map"
     out.mkdir(parents=True, exist_ok=True)
@@ -66,7 +68,8 @@ def sharded() -> None:
         blob = snapshot_bytes({**header, "info": {"source": "golden", "partition": p}}, arrays, codec="raw")
         (out / part_name(p)).write_bytes(blob)
         entries.append({"file": part_name(p), "bytes": len(blob), "sha256": hashlib.sha256(blob).hexdigest(),
-                        "leaves": int(keep.sum())})
+                        "leaves": int(keep.sum()),
+                        **leaf_stats(Leaves(codes[keep], depths[keep], values[keep]), 0.2, 0.0)})
     manifest = {"format": FORMAT, "version": VERSION, "partitions": 2, "shard_depth": 10,
                 "partition_rule": "fibonacci-hash", "backend": "octree", "map_params": header["map_params"],
                 "sensor_model": header["sensor_model"], "info": {"source": "golden", "scans": 1}, "parts": entries}
@@ -95,8 +98,8 @@ def packets() -> None:
                                 kind=KIND_KEYFRAME, box=(np.array([100, 200, 300]), np.array([2, 2, 2]))),
         "packet_occupied": dict(scheme="occupied", keys=keys[:0], states=states[:0],
                                 frames=[(7, keys[:2]), (8, keys[2:])]),
-        # cm1 (codec 3, voxtool 0.1's cm): a short line of newly free voxels ending in a hit, one
-        # voxel gone unknown (these bytes are the ones voxtool 0.1 wrote as `packet_cm`)
+        # cm1 (codec 3, the first cm coder): a short line of newly free voxels ending in a hit, one
+        # voxel gone unknown (these bytes are the ones the first cm coder wrote as `packet_cm`)
         "packet_cm1": dict(scheme="nested", codec="cm1", keys=line, states=line_states),
         "packet_cm1_keyframe": dict(scheme="nested", codec="cm1", keys=keys[:0],
                                     states=np.array([0, 1, 2, 0, 1, 1, 0, 2, 2, 2, 0, 0], np.uint8), kind=KIND_KEYFRAME,

@@ -143,7 +143,13 @@ def test_sharded_map_golden_vector():
     assert leaves.values.tolist() == pytest.approx(expected["leaf_values"])
     codes = np.array(expected["leaf_codes"], np.int64)
     assert partition_of(codes, manifest["shard_depth"], manifest["partitions"]).tolist() == expected["partition"]
+    from voxtool.stats import leaf_stats
+
     for entry, backend in iter_parts(root / "sharded_map"):
         p = int(entry["file"][5:10])
         mine = [c for c, q in zip(expected["leaf_codes"], expected["partition"]) if q == p]
         assert backend.leaves().codes.tolist() == mine
+        # every field formats/sharded.md lists for a part, with the part's own figures
+        assert set(entry) == {"file", "bytes", "sha256", "leaves", "occupied_voxels", "free_voxels", "occupied_bbox"}
+        figures = leaf_stats(backend.leaves(), backend.params.resolution, backend.sensor.threshold_log)
+        assert {k: entry[k] for k in figures} == figures

@@ -38,7 +38,7 @@ def test_a_log_of_the_old_layout_reads_the_same_packets(sample_logs, tmp_path):
     meta, messages = read_log(log)
     packets = list(messages)
     old = tmp_path / "old.mcap"
-    with open(old, "wb") as f:  # voxtool 0.3's layout: the packet is the message
+    with open(old, "wb") as f:  # the first layout: the packet is the message
         writer = Writer(f, compression=CompressionType.NONE)
         writer.start(profile="", library="voxtool")
         schema = writer.register_schema(LEGACY_SCHEMA, "voxtool-packet-v1", b"see formats/packet.md")
@@ -55,5 +55,51 @@ def test_a_log_with_a_different_definition_is_refused_in_one_line(sample_logs, t
     blob = sample_logs["r1"][0].read_bytes()
     bad = tmp_path / "other.mcap"
     bad.write_bytes(blob.replace(b"uint32 count ", b"uint64 count "))  # same length, another definition
-    with pytest.raises(FormatError, match=f"{MESSAGE_TYPE} definition is not the one this voxtool writes"):
+    with pytest.raises(FormatError, match=f"{MESSAGE_TYPE} definition is not one this voxtool reads"):
         read_log(bad)
+
+
+def test_a_log_with_the_earlier_map_origin_comment_still_reads(sample_logs, tmp_path):
+    """Logs written before the map_origin comment was corrected ("key 0") decode as before."""
+    from mcap_ros2.writer import Writer
+
+    from voxtool.codec.log import MESSAGE_DEFINITION, packet_message
+
+    meta, messages = read_log(sample_logs["r1"][0])
+    packets = list(messages)
+    old = tmp_path / "old.mcap"
+    earlier = MESSAGE_DEFINITION.replace("world position of the key-32768 corner, m", "world position of key 0, m")
+    assert earlier != MESSAGE_DEFINITION
+    with open(old, "wb") as f:
+        writer = Writer(f)
+        schema = writer.register_msgdef(MESSAGE_TYPE, earlier)
+        for robot, stamp, blob in packets:
+            writer.write_message(f"/voxtool/packets/{robot}", schema, packet_message(blob), log_time=stamp,
+                                 publish_time=stamp)
+        writer.finish()
+    _, old_messages = read_log(old)
+    assert list(old_messages) == packets
+
+
+def test_log_names_its_writer_and_its_message_text_is_the_specs(sample_logs):
+    """The metadata record carries the writer's version; the message definition embedded in the
+    log (read by the mcap library) is the one formats/packet.md prints, word for word."""
+    import re
+    from pathlib import Path
+
+    from mcap.reader import make_reader
+
+    import voxtool
+
+    with open(sample_logs["r1"][0], "rb") as f:
+        reader = make_reader(f)
+        records = list(reader.iter_metadata())
+        schemas = list(reader.get_summary().schemas.values())
+    assert [r.metadata["writer"] for r in records] == [f"voxtool {voxtool.__version__}"]
+    embedded = schemas[0].data.decode()
+    spec = (Path(__file__).resolve().parents[1] / "formats" / "packet.md").read_text()
+    block = re.search(r"```\n(\s*string robot .*?)```", spec, re.S)
+    assert block is not None
+    fields = [line for line in embedded.splitlines() if not line.startswith("#")]  # the two lead comments
+    assert [line.strip() for line in block.group(1).strip().splitlines()] == fields
+    assert "key-32768 corner" in embedded

@@ -5,7 +5,7 @@ is 3D: thin lines of newly free voxels and surfaces of new hits. cm codes each c
 probability learned from the cells already coded around it in 3D, and so spends 40-60 %
 fewer bytes than zstd on the real streams (docs/packets.md). `cm` (codec 4) codes one decision
 per 8 x 8 x 8 block first and then the cells of the blocks that hold changes only, so its work
-follows the changes, not the box's volume; `cm1` (codec 3, voxtool 0.1's cm) codes every cell and
+follows the changes, not the box's volume; `cm1` (codec 3, the first cm coder) codes every cell and
 is kept so that older logs decode. Bytes: formats/packet.md.
 """
 

@@ -6,7 +6,7 @@ header fields without voxtool; the field `packet` holds the packet verbatim (for
 Topic `/voxtool/packets/<robot>`, log time = publish time = packet stamp. A metadata record
 `voxtool` per robot records how the packets were made (sensor model, map parameters, scheme,
 codec) and the raw sensor bytes and time span of the source, so bandwidth can be compared with
-what was not sent. Logs of voxtool 0.3 and older (schema `voxtool/MapPacket`, the packet as the
+what was not sent. Logs in the first layout (schema `voxtool/MapPacket`, the packet as the
 whole message) still read.
 """
 
@@ -34,7 +34,7 @@ uint8 kind              # 0 delta (unchanged cells allowed), 1 keyframe
 string scheme           # hilbert | nested | racer | occupied
 string codec            # none | zstd | zlib | cm1 | cm
 float64 resolution      # voxel edge, m
-float64[3] map_origin   # world position of key 0, m
+float64[3] map_origin   # world position of the key-32768 corner, m
 uint16[3] box_min       # first key of the changed box
 uint16[3] box_size      # voxels per axis of the box
 uint32 count            # cells or voxels the payload holds
@@ -42,7 +42,11 @@ uint32 raw_size         # payload bytes before compression
 uint32 stored_size      # payload bytes as sent
 uint8[] packet          # 96-byte header + payload: the bytes a robot sends
 """
-LEGACY_SCHEMA = "voxtool/MapPacket"  # voxtool <= 0.3: the packet is the whole message
+# definitions this voxtool decodes: its own, and the earlier one whose map_origin comment said
+# "key 0" (the same fields, so the same CDR; only the comment was wrong)
+READ_DEFINITIONS = {MESSAGE_DEFINITION.encode(), MESSAGE_DEFINITION.replace(
+    "world position of the key-32768 corner, m", "world position of key 0, m").encode()}
+LEGACY_SCHEMA = "voxtool/MapPacket"  # the first layout: the packet is the whole message
 MAX_MESSAGE = 1 << 31
 
 
@@ -73,7 +77,10 @@ class PacketLogWriter:
                                    publish_time=stamp_ns, sequence=seq & 0xFFFFFFFF)
 
     def metadata(self, robot: str, info: dict) -> None:
-        self._writer.add_metadata("voxtool", {"robot": robot, "info": json.dumps(info, sort_keys=True)})
+        from voxtool import __version__
+
+        self._writer.add_metadata("voxtool", {"robot": robot, "writer": f"voxtool {__version__}",
+                                              "info": json.dumps(info, sort_keys=True)})
 
     def close(self, ok: bool = True) -> None:
         if ok:
@@ -138,9 +145,9 @@ def read_log(path: str | Path, handle=None) -> tuple[dict[str, dict], Messages]:
     decode = None
     if MESSAGE_TYPE in names:
         schema = next(s for s in summary.schemas.values() if s.name == MESSAGE_TYPE)
-        if schema.data != MESSAGE_DEFINITION.encode():  # decode only the definition this voxtool knows
+        if schema.data not in READ_DEFINITIONS:  # decode only the definitions this voxtool knows
             handle.close()
-            raise FormatError(f"{path}: its {MESSAGE_TYPE} definition is not the one this voxtool writes "
+            raise FormatError(f"{path}: its {MESSAGE_TYPE} definition is not one this voxtool reads "
                               "(another version's log, or a damaged schema)")
         decode = DecoderFactory().decoder_for("cdr", schema)
 

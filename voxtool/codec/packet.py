@@ -29,7 +29,7 @@ MAGIC = b"VXPK"
 VERSION = 2  # 2: `occupied` frames as varint Morton deltas; version-1 packets still decode
 READABLE_VERSIONS = (1, 2)
 SCHEMES = ("hilbert", "nested", "racer", "occupied")
-# cm and cm1: voxtool.codec.cm, the nested scheme only (cm1: voxtool 0.1's cm, which codes every cell)
+# cm and cm1: voxtool.codec.cm, the nested scheme only (cm1: the first cm coder, which codes every cell)
 CODECS = ("none", "zstd", "zlib", "cm1", "cm")
 CM_CODECS = ("cm1", "cm")
 MAX_CM_PLANE = 1 << 26  # cells in one plane of a cm box: a coder keeps three planes of classes
