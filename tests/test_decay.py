@@ -118,5 +118,5 @@ def test_cli_decay_on_a_generated_street(tmp_path):
     assert code != 0 and "increasing scan times" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "none.vxm").exists()
     for bad in (["--decay", "0"], ["--decay", "1", "--backend", "hashmap"]):
-        code, _, err = cli("build", str(scans), "--poses", str(scans / "poses.txt"), *bad)
+        code, _, err = cli("build", str(scans), *bad)
         assert code == 2, err
