@@ -22,10 +22,10 @@ RES = 0.2
 @pytest.fixture(scope="module")
 def street_maps(tmp_path_factory):
     """A generated street built from scans 0..3 (A) and 0..13 (B): N and N + 10 scans."""
-    from voxtool.synthetic import street, write_pcd_scans
+    from voxtool.synthetic import Lidar, street, write_pcd_scans
 
     tmp = tmp_path_factory.mktemp("diff")
-    write_pcd_scans(street(14, seed=5), tmp / "scans")
+    write_pcd_scans(street(14, seed=5, lidar=Lidar(beams=16, columns=512)), tmp / "scans")
     for name, stop in (("a", ["--stop", "4"]), ("b", [])):
         code, _, err = cli("build", tmp / "scans", "--resolution", RES, "-o", tmp / f"{name}.vxm", *stop)
         assert code == 0, err
