@@ -125,3 +125,30 @@ def test_free_entity_and_refusals(tmp_path):
     assert int(np.round(sizes ** 3).sum()) == free.shape[0]
     code, _, err = cli("export", path, "-o", tmp_path / "x.mcap", "--free", "--ros2-only")
     assert code == 2 and err.count("\n") == 1 and not (tmp_path / "x.mcap").exists()
+
+
+def test_map_mcap_is_stamped_with_the_last_scan(tmp_path):
+    """The exported map's messages (log time, ROS header stamp, Foxglove entity time) carry the
+    time of the last scan the map holds: 0.3 s for 4 scans at 10 Hz from --poses times."""
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+    from mcap.reader import make_reader
+    from rosbags.highlevel import AnyReader
+
+    from voxtool.synthetic import Lidar, street, write_pcd_scans
+
+    scans = tmp_path / "scans"
+    write_pcd_scans(street(4, seed=2, lidar=Lidar(beams=8, columns=256)), scans)
+    path = tmp_path / "m.vxm"
+    assert cli("build", scans, "--poses", scans / "poses.txt", "--resolution", 0.4, "-o", path)[0] == 0
+    ros, both = tmp_path / "ros.mcap", tmp_path / "both.mcap"
+    assert cli("export", path, "-o", ros, "--ros2-only")[0] == 0
+    assert cli("export", path, "-o", both)[0] == 0
+    with AnyReader([ros]) as reader:
+        ((_, log_time, raw),) = list(reader.messages())
+        msg = reader.deserialize(raw, "octomap_msgs/msg/Octomap")
+    assert log_time == 300_000_000 and (msg.header.stamp.sec, msg.header.stamp.nanosec) == (0, 300_000_000)
+    with open(both, "rb") as f:
+        messages = list(make_reader(f).iter_messages())
+    assert [m.log_time for _, _, m in messages] == [300_000_000] * 2
+    (scene,) = [SceneUpdate.FromString(m.data) for _, c, m in messages if c.topic == "/voxtool/map"]
+    assert scene.entities[0].timestamp.ToNanoseconds() == 300_000_000

@@ -74,7 +74,7 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
         result["shared_packets"] = writer.seq
     if output is not None:
         info = {"source": str(source), "source_kind": stream.kind, "source_options": options.__dict__,
-                **{k: result[k] for k in RECORDED_COUNTS}}
+                **{k: result[k] for k in RECORDED_COUNTS}, "last_stamp_ns": report.last_stamp_ns or 0}
         save_map(output, backend, info)
     return result
 
@@ -287,7 +287,9 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
     if Path(path).is_dir() and kind in STREAMED and crop is None:
         return export_sharded(path, output, include_free, progress, **extra)  # part by part
     with bar(2, f"export {output.suffix}", progress, "step") as steps:
-        leaves, res, thr, _ = load_leaves(path)
+        leaves, res, thr, meta = load_leaves(path)
+        if kind == ".mcap":  # stamped with the map's last scan (0: a map that does not say)
+            extra["stamp_ns"] = int(meta.get("info", {}).get("last_stamp_ns", 0) or 0)
         if crop is not None:
             from voxtool.maps.tree import crop as crop_leaves
 

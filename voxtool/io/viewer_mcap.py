@@ -114,7 +114,9 @@ def octomap_message(leaves: Leaves, resolution: float, threshold_log: float, sta
 
 
 def write_map_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-                   ros2_only: bool = False) -> dict:
+                   ros2_only: bool = False, stamp_ns: int = 0) -> dict:
+    """The map as one octomap_msgs/Octomap message and one Foxglove SceneUpdate, both at
+    `stamp_ns` (log time and header stamp): the time of the last scan the map holds, 0 if unknown."""
     from mcap_protobuf.schema import register_schema
     from mcap_ros2.writer import Writer as Ros2Writer
 
@@ -122,20 +124,20 @@ def write_map_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log:
         from voxtool.errors import ParameterError
 
         raise ParameterError(f"{path}: --free adds a Foxglove entity, which --ros2-only leaves out")
-    update = None if ros2_only else scene_update(leaves, resolution, threshold_log, include_free)
-    octomap = octomap_message(leaves, resolution, threshold_log)
+    update = None if ros2_only else scene_update(leaves, resolution, threshold_log, include_free, stamp_ns)
+    octomap = octomap_message(leaves, resolution, threshold_log, stamp_ns)
     with atomic_writer(path) as f:
         writer = Ros2Writer(f)  # profile ros2: rosbags and ROS 2 tools open the file
         schema = writer.register_msgdef("octomap_msgs/msg/Octomap", OCTOMAP_MSGDEF)
-        writer.write_message("/octomap_binary", schema, octomap, log_time=0, publish_time=0)
+        writer.write_message("/octomap_binary", schema, octomap, log_time=stamp_ns, publish_time=stamp_ns)
         if update is not None:
             # the SceneUpdate goes into the same file through the ROS 2 writer's MCAP writer
             mcap = writer._writer
             scene_schema = register_schema(mcap, type(update))
             channel = mcap.register_channel(topic="/voxtool/map", message_encoding="protobuf", schema_id=scene_schema)
-            mcap.add_message(channel_id=channel, log_time=0, publish_time=0, data=update.SerializeToString(),
+            mcap.add_message(channel_id=channel, log_time=stamp_ns, publish_time=stamp_ns, data=update.SerializeToString(),
                              sequence=0)
         writer.finish()
     return {"format": "mcap", "topics": ["/octomap_binary"] + ([] if update is None else ["/voxtool/map"]),
             "cubes": None if update is None else {e.id: len(e.cubes) for e in update.entities},
-            "octomap_bytes": len(octomap["data"])}
+            "octomap_bytes": len(octomap["data"]), "stamp_ns": stamp_ns}
