@@ -196,10 +196,9 @@ def load_leaves(path: str | os.PathLike) -> tuple[Leaves, float, float, dict]:
         values = np.where(tree.occupied, np.float32(sensor.clamp_max_log), np.float32(sensor.clamp_min_log))
         return Leaves(tree.codes, tree.depths, values.astype(np.float32)), tree.resolution, sensor.threshold_log, {
             "backend": "octomap-bt", "declared_nodes": tree.declared_size}
-    from voxtool.io.mapfile import load_map
+    from voxtool.io.mapfile import read_leaves
 
-    backend, snap = load_map(path)
-    return backend.leaves(), backend.params.resolution, backend.sensor.threshold_log, snap.header
+    return read_leaves(path)  # an octree snapshot's stored leaves, without rebuilding its tree
 
 
 def map_stats(path: str | os.PathLike, progress: bool | None = False) -> dict:

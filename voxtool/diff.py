@@ -19,8 +19,8 @@ import numpy as np
 
 from voxtool.errors import ParameterError
 from voxtool.kernels import diff as K
-from voxtool.keys import keys_to_coords, leaf_edge, leaf_span, morton_decode
-from voxtool.maps.base import Leaves
+from voxtool.keys import keys_to_coords, leaf_span
+from voxtool.maps.base import Leaves, join_leaves
 
 STATES = ("unknown", "free", "occupied")
 CHANGES = {3 * a + b: f"{STATES[a]}_to_{STATES[b]}" for a in range(3) for b in range(3) if a != b}
@@ -43,6 +43,7 @@ class MapDiff:
     common_known: int = 0
     blocks: list = field(default_factory=list)  # Leaves of changed nodes, values = change kind
     b_map: object = None  # map B as opened (the picture's background)
+    _changed: Leaves | None = None  # the blocks joined (changed()), until the next add
 
     def add(self, a: Leaves, a_threshold: float, b: Leaves, b_threshold: float) -> None:
         args = (a.codes, a.depths, a.values, np.float32(a_threshold), b.codes, b.depths, b.values,
@@ -56,6 +57,7 @@ class MapDiff:
                 break
             room = n
         self.counts += counts
+        self._changed = None
         self.kl_divergence += kl
         self.common_known += int(common)
         if n:
@@ -66,13 +68,12 @@ class MapDiff:
             self.blocks.append(Leaves(codes, depths, bk.astype(np.float32)))
 
     def changed(self) -> Leaves:
-        """Every changed node (code, depth, kind as value), in Morton order."""
-        if not self.blocks:
-            return Leaves(np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.float32))
-        codes = np.concatenate([b.codes for b in self.blocks])
-        order = np.argsort(codes, kind="stable")
-        return Leaves(codes[order], np.concatenate([b.depths for b in self.blocks])[order],
-                      np.concatenate([b.values for b in self.blocks])[order])
+        """Every changed node (code, depth, kind as value), in Morton order (joined once: the
+        bounding box, the picture and the point cloud all read it)."""
+        if self._changed is None:
+            self._changed = join_leaves(self.blocks) if self.blocks else \
+                Leaves(np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.float32))
+        return self._changed
 
     @property
     def changed_voxels(self) -> int:
@@ -80,13 +81,13 @@ class MapDiff:
 
     def bbox(self) -> dict | None:
         """Outer corners (metres) of every changed voxel, as stats' occupied_bbox."""
-        changed = self.changed()
-        if len(changed) == 0:
+        from voxtool.io.picture import key_bounds
+
+        bounds = key_bounds(self.changed())
+        if bounds is None:
             return None
-        lo = morton_decode(changed.codes).astype(np.int64)
-        hi = lo + leaf_edge(changed.depths)[:, None].astype(np.int64) - 1
-        low = keys_to_coords(lo.min(axis=0), self.resolution) - self.resolution / 2
-        high = keys_to_coords(hi.max(axis=0), self.resolution) + self.resolution / 2
+        low = keys_to_coords(bounds[0], self.resolution) - self.resolution / 2
+        high = keys_to_coords(bounds[1], self.resolution) + self.resolution / 2
         return {"min": [round(float(v), 9) for v in low], "max": [round(float(v), 9) for v in high]}
 
     def to_dict(self) -> dict:
@@ -120,14 +121,9 @@ def _open(path: str | os.PathLike) -> _Map:
     if path.is_dir():
         manifest = sharded.read_manifest(path)
         return _Map(path, float(manifest["map_params"]["resolution"]), manifest=manifest)
-    if path.suffix.lower() == ".bt":
-        from voxtool.api import load_leaves
+    from voxtool.api import load_leaves
 
-        leaves, resolution, threshold, _ = load_leaves(path)
-    else:
-        from voxtool.io.mapfile import read_leaves
-
-        leaves, resolution, threshold, _ = read_leaves(path)
+    leaves, resolution, threshold, _ = load_leaves(path)
     return _Map(path, resolution, leaves=leaves, threshold=threshold)
 
 
@@ -180,10 +176,7 @@ def _regions(a: _Map, b: _Map, progress) -> Iterator[tuple[Leaves, float, Leaves
                 threshold = part_threshold
                 split = split_to_depth(part, depth)
                 chunks.append(_select(split, partition_of(split.codes, depth, parts) == p))
-            codes = np.concatenate([c.codes for c in chunks])
-            order = np.argsort(codes, kind="stable")
-            theirs = Leaves(codes[order], np.concatenate([c.depths for c in chunks])[order],
-                            np.concatenate([c.values for c in chunks])[order])
+            theirs = join_leaves(chunks)
         here = (mine, my_threshold)
         there = (theirs, threshold)
         yield (*there, *here) if swapped else (*here, *there)
@@ -232,16 +225,25 @@ def write_diff_png(path: Path, result: MapDiff, view: str = "top", label: str = 
     view, axes in metres, scale bar, caption), with a legend of the change kinds."""
     from matplotlib.patches import Patch
 
-    from voxtool.io.picture import FREE, FREE_RGB, OCCUPIED, UNKNOWN_RGB, Raster, check_options, figure, save
+    from voxtool.io.picture import (
+        FREE,
+        FREE_RGB,
+        OCCUPIED,
+        UNKNOWN_RGB,
+        Raster,
+        check_options,
+        figure,
+        key_bounds,
+        save,
+    )
 
     check_options(view, None)
     changed = result.changed()
-    if len(changed) == 0:
+    bounds = key_bounds(changed)
+    if bounds is None:
         raise ParameterError(f"{path}: the maps do not differ: there is nothing to draw")
-    lo = morton_decode(changed.codes).astype(np.int64)
-    hi = lo + leaf_edge(changed.depths)[:, None].astype(np.int64) - 1
-    margin = max(8, int((hi.max(axis=0) - lo.min(axis=0)).max() // 10))
-    kmin, kmax = lo.min(axis=0) - margin, hi.max(axis=0) + margin
+    margin = max(8, int((bounds[1] - bounds[0]).max() // 10))
+    kmin, kmax = bounds[0] - margin, bounds[1] + margin
     base = Raster.covering(view, kmin, kmax)
     for leaves, threshold in _background(result.b_map):
         base.add(leaves, threshold)

@@ -16,8 +16,6 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
-
 from voxtool.atomic import atomic_writer
 from voxtool.errors import FormatError, VoxtoolError
 from voxtool.io.sharded_tree import Units, add_part, join_counts
@@ -159,7 +157,7 @@ def iter_part_leaves(path: str | os.PathLike, check_hash: bool = True) -> Iterat
 
 def load_sharded(path: str | os.PathLike):
     """The whole map of a sharded snapshot as one OctreeMap (memory: the whole map)."""
-    from voxtool.maps.base import Leaves
+    from voxtool.maps.base import join_leaves
     from voxtool.maps.octree import OctreeMap
 
     parts = []
@@ -167,11 +165,9 @@ def load_sharded(path: str | os.PathLike):
     for _, backend in iter_parts(path):
         first = first or backend
         parts.append(backend.leaves())
-    leaves = Leaves(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("codes", "depths", "values")))
-    order = np.argsort(leaves.codes, kind="stable")
+    leaves = join_leaves(parts)
     whole = OctreeMap(first.params, first.sensor, shard_depth=first.shard_depth)
-    whole.load_state({"leaf_codes": leaves.codes[order], "leaf_depths": leaves.depths[order],
-                      "leaf_values": leaves.values[order]})
+    whole.load_state({"leaf_codes": leaves.codes, "leaf_depths": leaves.depths, "leaf_values": leaves.values})
     return whole
 
 

@@ -23,6 +23,14 @@ class Leaves:
         return int(self.codes.shape[0])
 
 
+def join_leaves(parts: list[Leaves]) -> Leaves:
+    """Leaf sets that do not overlap (a map's parts, pieces of a crop) as one, in Morton order."""
+    codes = np.concatenate([p.codes for p in parts])
+    order = np.argsort(codes, kind="stable")
+    return Leaves(codes[order], np.concatenate([p.depths for p in parts])[order],
+                  np.concatenate([p.values for p in parts])[order])
+
+
 @dataclass
 class IntegrateTiming:
     """Seconds spent in one scan's integration, split by phase."""

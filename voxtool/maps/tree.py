@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from voxtool.kernels import octree as K
-from voxtool.maps.base import Leaves
+from voxtool.maps.base import Leaves, join_leaves
 
 
 def collapse(leaves: Leaves, deepest: int = 16) -> Leaves:
@@ -56,6 +56,4 @@ def crop(leaves: Leaves, lo_key: np.ndarray, hi_key: np.ndarray) -> Leaves:
         codes = (codes[across][:, None] + np.arange(8, dtype=np.int64) * children[:, None]).ravel()
         depths = np.repeat(depths[across] + np.uint8(1), 8)
         values = np.repeat(values[across], 8)
-    out = Leaves(*(np.concatenate([getattr(k, f) for k in kept]) for f in ("codes", "depths", "values")))
-    order = np.argsort(out.codes, kind="stable")
-    return Leaves(out.codes[order], out.depths[order], out.values[order])
+    return join_leaves(kept)
