@@ -41,21 +41,15 @@ def validate_leaves(leaves: Leaves, where: str) -> None:
 
 
 def read_leaves(path: str | Path) -> tuple[Leaves, float, float, dict]:
-    """(leaves, resolution, threshold log-odds, header) of a snapshot. An octree snapshot's
-    leaves are its stored arrays (checked, not rebuilt into a tree: kaist03's 30M leaves in
-    1-2 s instead of 9); other backends' are derived from the backend."""
+    """(leaves, resolution, threshold log-odds, header) of a snapshot, checked as load_map
+    checks it. An octree snapshot's leaves are its stored arrays, not rebuilt into a tree
+    (kaist03's 30M leaves in 1-2 s instead of 9); other backends' are derived from the backend."""
     snap = read_snapshot(path)
-    h = snap.header
-    if h.get("backend") != "octree" or "leaf_codes" not in snap.arrays:
-        backend = backend_from_snapshot(snap, str(path))
-        return backend.leaves(), backend.params.resolution, backend.sensor.threshold_log, h
-    try:
-        params, sensor = MapParams(**h["map_params"]), SensorModel(**h["sensor_model"])
-        leaves = Leaves(snap.arrays["leaf_codes"], snap.arrays["leaf_depths"], snap.arrays["leaf_values"])
-    except (KeyError, TypeError, VoxtoolError) as err:
-        raise FormatError(f"{path}: snapshot header or arrays missing or mangled ({err})") from err
-    validate_leaves(leaves, str(path))
-    return leaves, params.resolution, sensor.threshold_log, h
+    backend, leaves = _checked(snap, str(path))
+    if backend.name != "octree":
+        backend.load_state(snap.arrays)
+        leaves = backend.leaves()
+    return leaves, backend.params.resolution, backend.sensor.threshold_log, snap.header
 
 
 def load_map(path: str | Path) -> tuple[MapBackend, Snapshot]:
@@ -66,6 +60,13 @@ def load_map(path: str | Path) -> tuple[MapBackend, Snapshot]:
 
 def backend_from_snapshot(snap: Snapshot, path: str) -> MapBackend:
     """The backend a parsed snapshot describes, its state loaded (everything checked first)."""
+    backend, _ = _checked(snap, path)
+    backend.load_state(snap.arrays)
+    return backend
+
+
+def _checked(snap: Snapshot, path: str) -> tuple[MapBackend, Leaves]:
+    """The (empty) backend a snapshot's header describes and its stored leaves, both checked."""
     from voxtool.maps import make_backend
 
     h = snap.header
@@ -82,5 +83,4 @@ def backend_from_snapshot(snap: Snapshot, path: str) -> MapBackend:
     except KeyError as err:
         raise FormatError(f"{path}: snapshot lacks array {err}") from err
     validate_leaves(leaves, path)
-    backend.load_state(snap.arrays)
-    return backend
+    return backend, leaves
