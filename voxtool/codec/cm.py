@@ -49,12 +49,15 @@ def decompress_box(data: bytes, dims, background: int, where: str) -> np.ndarray
 def compress_cells(idx: np.ndarray, vals: np.ndarray, dims, background: int) -> bytes:
     """The codec-4 stream of a box given its non-background cells: `idx` their nested indices
     (x + nx (y + ny z)), ascending, `vals` their codes; every other cell is `background`."""
-    from voxtool.kernels.cm import encode_blocks
+    from voxtool.kernels.cm import BLOCK, encode_blocks
 
     nx, ny, nz = (int(d) for d in dims)
     idx = np.ascontiguousarray(idx, dtype=np.int64)
     vals = np.ascontiguousarray(vals, dtype=np.uint8)
-    out = np.empty(idx.shape[0] // 2 + (nx * ny) // 256 + 64, dtype=np.uint8)
+    # room for what the coder checks before each slab (2 bytes a block of it) and each run of
+    # cells (5 bytes a cell) beside about 0.3 bytes a cell coded: a second pass is rare
+    blocks = -(-nx // BLOCK) * -(-ny // BLOCK)
+    out = np.empty(idx.shape[0] // 2 + 2 * blocks + 5 * nx + 64, dtype=np.uint8)
     while True:
         n, _ = encode_blocks(idx, vals, nx, ny, nz, background, out, idx, vals)
         if n == -3:
