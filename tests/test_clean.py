@@ -42,26 +42,54 @@ def test_accuracy_refuses_labels_of_another_length():
 
 # -- kernels against brute force --------------------------------------------------------------
 
-def test_void_evidence_is_the_free_voxels_beyond_the_noise_ball_of_every_hit():
-    from voxtool.keys import morton_decode
-
-    scan = next(iter(street(1, lidar=Lidar(beams=8, columns=90)).scans()))
+def test_void_evidence_is_each_ray_up_to_the_first_hit_segment_away_from_every_hit():
+    """Brute force, ray by ray: OctoMap's voxels of the ray (one-ray scans, in the order the ray
+    enters them: by the centre's distance along it) up to the first voxel that the last d_s
+    metres of any ray of the scan pass through (sampled as documented: 4 samples a voxel edge),
+    less those within d_s (3 voxels) of any voxel the scan hit."""
+    from voxtool.keys import coords_to_keys, morton_decode, morton_encode
     from voxtool.maps.octree import scan_updates
     from voxtool.sources.scan import Scan
 
-    params = CleanParams(resolution=0.25, sensor_noise=0.6)  # 3 voxels
+    scan = next(iter(street(1, lidar=Lidar(beams=8, columns=90)).scans()))
+    points, origin = scan[0], scan[1]
+    origin = origin.astype(np.float32)
+    params = CleanParams(resolution=0.25, sensor_noise=0.6)
     vm = VoidMap(params, threads=1)
-    prepared = vm.prepare(Scan(scan[0], scan[1].astype(np.float32)))
-    packed = scan_updates(Scan(scan[0], scan[1].astype(np.float32)), vm.params)[0]
-    free, hits = packed[packed & 1 == 0] >> 1, packed[packed & 1 == 1] >> 1
-    fk = morton_decode(free).astype(np.int64)
-    hk = morton_decode(hits).astype(np.int64)
-    near = np.zeros(free.shape[0], bool)
-    for lo in range(0, hk.shape[0], 256):  # squared key distance to every hit, a block of hits at a time
-        d2 = ((fk[:, None, :] - hk[None, lo:lo + 256, :]) ** 2).sum(axis=2)
+    got = vm.prepare(Scan(points, origin)).packed
+    assert not (got & 1).any()  # void evidence only: no endpoints
+
+    segment = set()
+    o = origin.astype(np.float64)
+    for p in points.astype(np.float64):
+        dist = np.linalg.norm(p - o)
+        seg = min(0.6, dist)
+        n = int(np.ceil(seg / 0.25 * 4))
+        f = np.arange(n + 1) * seg / (n * dist)
+        samples = p[None, :] - (p - o)[None, :] * f[:, None]
+        segment.update(morton_encode(coords_to_keys(samples, 0.25)).tolist())
+    hit_keys = np.unique(coords_to_keys(points, 0.25).astype(np.int64), axis=0)
+    walked = set()
+    centre = 0.25 * (np.arange(65536) - 32768 + 0.5)
+    for p in points:
+        free = scan_updates(Scan(p[None, :], origin), vm.params)[0]
+        free = free[free & 1 == 0] >> 1
+        keys = morton_decode(free).astype(np.int64)
+        along = ((centre[keys] - o) * (p - o)).sum(axis=1)
+        for code in free[np.argsort(along)].tolist():
+            if code in segment:
+                break
+            walked.add(code)
+    walked = np.array(sorted(walked))
+    wk = morton_decode(walked).astype(np.int64)
+    near = np.zeros(walked.shape[0], bool)
+    for lo in range(0, hit_keys.shape[0], 256):  # squared key distance to every hit, a block at a time
+        d2 = ((wk[:, None, :] - hit_keys[None, lo:lo + 256, :]) ** 2).sum(axis=2)
         near |= (d2 <= 9).any(axis=1)
+    all_free = scan_updates(Scan(points, origin), vm.params)[0]
+    assert 0 < walked.shape[0] < np.count_nonzero(all_free & 1 == 0)  # some rays stopped early
     assert near.any() and (~near).any()
-    np.testing.assert_array_equal(prepared.packed >> 1, free[~near])
+    np.testing.assert_array_equal(got >> 1, walked[~near])
 
 
 def test_a_point_is_dynamic_when_its_voxel_and_its_cube_are_void():

@@ -1,9 +1,10 @@
 """`voxtool clean`: a static point map from a scan sequence, by void regions (DUFOMap's idea).
 
 A voxel is *void* once any ray of any scan has passed through it farther than `sensor_noise`
-from every point of that scan (DUFOMap's inflated hits: range noise and porous surfaces such as
-foliage, seen through between the hits of one scan, give no void evidence). A point is dynamic when its voxel and every voxel within
-`pose_error` voxels of it are void: something else was seen through that space at another
+from every point of that scan (range noise and porous surfaces such as foliage, seen through
+between the hits of one scan, give no void evidence), each ray stopping where it comes within
+`sensor_noise` of the end of any ray of the scan (DUFOMap's inflated hits). A point is dynamic
+when its voxel and every voxel within `pose_error` voxels of it are void: something else was seen through that space at another
 time. Everything else is static. The void map is an octree of the exact OctoMap ray casting
 (voxtool.maps.octree) holding -1 for void voxels; docs/cleaning.md says how to tune it and
 docs/design/clean.md why it was chosen and what it was measured against.
@@ -47,11 +48,6 @@ class CleanParams:
         if not 0 <= self.pose_error <= 5:
             raise ParameterError(f"pose_error={self.pose_error} must lie in 0..5 voxels")
 
-    @property
-    def noise_voxels(self) -> int:
-        """sensor_noise in whole voxels (rounded up: never less protection than asked)."""
-        return int(np.ceil(self.sensor_noise / self.resolution - 1e-9))
-
 
 class VoidMap:
     """The void octree, shaped as a map backend so voxtool.pipeline.build streams scans into it
@@ -67,7 +63,7 @@ class VoidMap:
         self.sensor = SensorModel()
         self.threads = resolve_threads(threads)
         self.tree = ShardedOctree(DEFAULT_SHARD_DEPTH, self.threads)
-        self.near_hit = ball_offsets(params.noise_voxels)
+        self.near_hit = ball_offsets(int(np.ceil(params.sensor_noise / params.resolution - 1e-9)))
 
     def warm_up(self) -> None:
         from voxtool.maps.octree import warm_up_kernels
@@ -77,19 +73,29 @@ class VoidMap:
         dynamic_points(self, np.zeros((1, 3), dtype=np.float32))
 
     def prepare(self, scan: Scan) -> PreparedScan:
-        """The scan's void evidence: the free voxels of its rays outside the sensor_noise ball of
-        every voxel it hit (map-independent: runs on the read-ahead thread while the last scan
-        updates the void map)."""
-        from voxtool.kernels.clean import free_away_from_hits
+        """The scan's void evidence: the free voxels of its rays, each ray stopped at the last
+        sensor_noise metres of any ray of the scan and silent within sensor_noise of any of its
+        hits (kernels.clean.near_hits_table; map-independent: runs on the read-ahead thread
+        while the last scan updates the void map)."""
+        from voxtool.kernels.clean import near_hits_table
+        from voxtool.keys import coords_to_keys, morton_encode
         from voxtool.maps.octree import scan_bricks_updates
 
         t0 = time.perf_counter()
-        packed, steps, _, _ = scan_bricks_updates(scan, self.params, self.threads)
-        size = 1 << max(10, int(np.count_nonzero(packed & 1)).bit_length())  # bricks near hits: ~hits / 4
-        while (free := free_away_from_hits(packed, self.near_hit, np.full(size, -1, dtype=np.int64),
-                                           np.zeros((size, 8), dtype=np.int64))) is None:
+        points = scan.points
+        if self.params.max_range >= 0:  # a ray cut at max range hits nothing
+            reach = np.linalg.norm(points.astype(np.float64) - scan.origin, axis=1)
+            points = points[reach <= self.params.max_range]
+        hits = np.unique(morton_encode(coords_to_keys(points, self.params.resolution, what=f"{scan.source}: point")))
+        size = 1 << max(10, int(hits.shape[0]).bit_length() + 1)  # bricks near hits: ~hits / 2
+        while True:
+            table = (np.full(size, -1, dtype=np.int64), np.zeros((size, 16), dtype=np.int64))
+            if near_hits_table(points, hits, scan.origin, self.params.resolution, self.clean.sensor_noise,
+                               self.near_hit, *table):
+                break
             size *= 2
-        return PreparedScan(free << 1, steps, time.perf_counter() - t0, int(scan.points.shape[0]))
+        packed, steps, _, _ = scan_bricks_updates(scan, self.params, self.threads, near_hits=table)
+        return PreparedScan(packed, steps, time.perf_counter() - t0, int(scan.points.shape[0]))
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         t0 = time.perf_counter()

@@ -16,29 +16,6 @@ def _slot(code, mask):
     return ((code * _HASH_MULT) >> 20) & mask
 
 
-@njit(cache=True, nogil=True)
-def ball_offsets(radius):
-    """(n, 3) integer offsets of the voxels within `radius` voxels (Euclidean, centre included)."""
-    r = int(radius)
-    n = 0
-    for dx in range(-r, r + 1):
-        for dy in range(-r, r + 1):
-            for dz in range(-r, r + 1):
-                if dx * dx + dy * dy + dz * dz <= r * r:
-                    n += 1
-    out = np.empty((n, 3), dtype=np.int64)
-    k = 0
-    for dx in range(-r, r + 1):
-        for dy in range(-r, r + 1):
-            for dz in range(-r, r + 1):
-                if dx * dx + dy * dy + dz * dz <= r * r:
-                    out[k, 0] = dx
-                    out[k, 1] = dy
-                    out[k, 2] = dz
-                    k += 1
-    return out
-
-
 @njit(cache=True, inline="always")
 def _moved(code, dx, dy, dz):
     """The Morton code of the voxel `code` moved by (dx, dy, dz) voxels; -1 outside the key range."""
@@ -69,57 +46,84 @@ def _brick_row(keys, brick, mask, insert):
 
 
 @njit(cache=True, nogil=True)
-def free_away_from_hits(packed, offsets, keys, bits):
-    """Free voxel codes of a scan's Morton-sorted updates (code << 1 | occupied) that lie
-    outside the offsets' ball around every voxel the scan hit (DUFOMap's d_s: porous surfaces
-    such as foliage, seen through in gaps between the hits of one scan, stay unvoided).
+def ball_offsets(radius):
+    """(n, 3) integer offsets of the voxels within `radius` voxels (Euclidean, centre included)."""
+    r = int(radius)
+    n = 0
+    for dx in range(-r, r + 1):
+        for dy in range(-r, r + 1):
+            for dz in range(-r, r + 1):
+                if dx * dx + dy * dy + dz * dz <= r * r:
+                    n += 1
+    out = np.empty((n, 3), dtype=np.int64)
+    k = 0
+    for dx in range(-r, r + 1):
+        for dy in range(-r, r + 1):
+            for dz in range(-r, r + 1):
+                if dx * dx + dy * dy + dz * dz <= r * r:
+                    out[k, 0] = dx
+                    out[k, 1] = dy
+                    out[k, 2] = dz
+                    k += 1
+    return out
 
-    The voxels near hits are bits of 8x8x8-brick masks (`keys`: brick codes, -1 empty, a
-    power-of-two length; `bits`: (len(keys), 8) int64, zero) found by hashing; the free codes
-    come Morton-sorted, so each run of them in one brick costs one look-up. Returns None when
-    the table is too small (the caller doubles it)."""
+
+SEGMENT_SAMPLES_PER_VOXEL = 4  # samples along a hit's segment per voxel edge
+
+
+@njit(cache=True, nogil=True)
+def near_hits_table(points, hits, origin, resolution, length, offsets, keys, bits):
+    """The two voxel sets near a scan's hits that clean's rays respect, as bits of 8x8x8-brick
+    masks in one hash table (`keys`: brick codes, -1 empty, a power-of-two length; `bits`:
+    (len(keys), 16) int64, zero):
+    - words 0-7, *stop*: the voxels of the last `length` metres of every ray (from the sensor
+      origin to each of `points`, sampled 4 times a voxel edge, the point's voxel included).
+      A ray stops at the first (DUFOMap's hits, inflated backwards along the ray).
+    - words 8-15, *skip*: the voxels within the `offsets` ball of every hit voxel (`hits`: their
+      Morton codes, sorted). A ray passes them without void evidence: a porous surface such as
+      foliage, seen through between the hits of one scan, stays unvoided.
+    Points must lie in key range. Returns False when the table is too small (the caller
+    doubles it)."""
     mask = keys.shape[0] - 1
     used = 0
-    n_free = 0
     last_brick = np.int64(-1)
     row = -1
-    for i in range(packed.shape[0]):
-        item = packed[i]
-        if item & 1 == 0:
-            n_free += 1
-            continue
-        code = item >> 1
-        for j in range(offsets.shape[0]):
-            near = _moved(code, offsets[j, 0], offsets[j, 1], offsets[j, 2])
-            if near < 0:
+    res_factor = 1.0 / resolution
+    ox, oy, oz = np.float64(origin[0]), np.float64(origin[1]), np.float64(origin[2])
+    for i in range(points.shape[0]):
+        px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
+        dx, dy, dz = px - ox, py - oy, pz - oz
+        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+        seg = min(length, dist)
+        n = int(np.ceil(seg * res_factor * SEGMENT_SAMPLES_PER_VOXEL))
+        for k in range(n + 1):
+            f = 0.0 if n == 0 or dist == 0.0 else seg * k / (n * dist)  # seg * k / n metres back
+            kx = np.int64(np.floor(res_factor * (px - dx * f))) + 32768
+            ky = np.int64(np.floor(res_factor * (py - dy * f))) + 32768
+            kz = np.int64(np.floor(res_factor * (pz - dz * f))) + 32768
+            if kx < 0 or ky < 0 or kz < 0 or kx > 0xFFFF or ky > 0xFFFF or kz > 0xFFFF:
                 continue
-            brick = near >> 9
-            if brick != last_brick:
-                row, new = _brick_row(keys, brick, mask, True)
+            code = morton3(kx, ky, kz)
+            if code >> 9 != last_brick:
+                last_brick = code >> 9
+                row, new = _brick_row(keys, last_brick, mask, True)
                 used += new
                 if row < 0 or used * 2 > keys.shape[0]:
-                    return None
-                last_brick = brick
-            inner = near & 511
-            bits[row, inner >> 6] |= np.int64(1) << (inner & 63)
-    out = np.empty(n_free, dtype=np.int64)
-    k = 0
-    last_brick = -1
-    row = -1
-    for i in range(packed.shape[0]):
-        item = packed[i]
-        if item & 1:
-            continue
-        code = item >> 1
-        brick = code >> 9
-        if brick != last_brick:
-            row = _brick_row(keys, brick, mask, False)[0]
-            last_brick = brick
-        inner = code & 511
-        if row < 0 or (bits[row, inner >> 6] >> (inner & 63)) & 1 == 0:
-            out[k] = code
-            k += 1
-    return out[:k]
+                    return False
+            bits[row, (code & 511) >> 6] |= np.int64(1) << (code & 63)
+    for i in range(hits.shape[0]):
+        for j in range(offsets.shape[0]):
+            near = _moved(hits[i], offsets[j, 0], offsets[j, 1], offsets[j, 2])
+            if near < 0:
+                continue
+            if near >> 9 != last_brick:
+                last_brick = near >> 9
+                row, new = _brick_row(keys, last_brick, mask, True)
+                used += new
+                if row < 0 or used * 2 > keys.shape[0]:
+                    return False
+            bits[row, 8 + ((near & 511) >> 6)] |= np.int64(1) << (near & 63)
+    return True
 
 
 @njit(cache=True, nogil=True)

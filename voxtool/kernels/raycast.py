@@ -150,88 +150,124 @@ def _brick_of(kx, ky, kz, tab, bricks, n_bricks, tmask):
         s = (s + 1) & tmask
 
 
-@njit(cache=True, nogil=True)
-def scan_bricks(points, origin, resolution, max_range, tab, touched, occ, bricks):
-    """Voxels updated by one scan, as bricks of 8x8x8 voxels, into caller-owned buffers.
+@njit(cache=True, inline="always")
+def _near_row(near_keys, brick, mask):
+    """Row of `brick` in a near-hit table (kernels.clean.near_hits_table), -1 when absent."""
+    s = ((brick * _HASH_MULT) >> 20) & mask
+    while True:
+        k = near_keys[s]
+        if k == brick:
+            return s
+        if k == -1:
+            return -1
+        s = (s + 1) & mask
 
-    Returns (n_bricks, steps); n_bricks = -1 when the buffers are too small (the caller grows
-    them and calls again). Per brick: its code (Morton code >> 9) and two 512-bit masks
-    (8 x int64) of the voxels touched by the scan and of those holding an endpoint (occupied
-    wins over free, whatever the order rays come in). points: (N, 3) float32 world
-    coordinates; origin: (3,) float32; max_range < 0 means unlimited. Coordinates must already
-    be checked to lie in key range.
-    The DDA state lives in scalars (registers), the in-brick Morton index is stepped with
-    dilated arithmetic, and the brick table is consulted only when a step crosses into another
-    brick, so a step is a few compares and one OR into a mask that stays in cache.
-    """
-    tmask = tab.shape[0] - 1
-    res_factor = 1.0 / resolution
-    okx = _coord_key(origin[0], res_factor)
-    oky = _coord_key(origin[1], res_factor)
-    okz = _coord_key(origin[2], res_factor)
-    n_bricks = 0
-    steps = 0
-    for i in range(points.shape[0]):
-        cut, ekx, eky, ekz, tx, ty, tz, ux, uy, uz, sx, sy, sz, length64 = ray_setup(
-            points, i, origin, okx, oky, okz, resolution, max_range)
-        if not cut:  # a ray cut at max range marks no endpoint (OctoMap computeUpdate)
-            b, n_bricks = _brick_of(ekx, eky, ekz, tab, bricks, n_bricks, tmask)
-            if b < 0:
-                return -1, steps
-            v = _in_brick(ekx, eky, ekz)
-            bit = np.int64(1) << (v & 63)
-            touched[b, v >> 6] |= bit
-            occ[b, v >> 6] |= bit
-        if ekx == okx and eky == oky and ekz == okz:
-            continue
-        # free voxels from the origin's up to (not including) the end voxel (computeRayKeys)
-        kx, ky, kz = okx, oky, okz
-        b, n_bricks = _brick_of(kx, ky, kz, tab, bricks, n_bricks, tmask)
-        if b < 0:
-            return -1, steps
-        v = _in_brick(kx, ky, kz)
-        bx = 0 if sx > 0 else 7  # the key & 7 that starts a new brick when stepping along x
-        by = 0 if sy > 0 else 7
-        bz = 0 if sz > 0 else 7
-        # every step moves one axis one voxel towards the end key, so the ray can reach it only
-        # after exactly this many steps (an axis that overshoots never comes back)
-        to_end = abs(ekx - okx) + abs(eky - oky) + abs(ekz - okz)
-        while True:
-            touched[b, v >> 6] |= np.int64(1) << (v & 63)
-            steps += 1
-            # advance (Amanatides-Woo with OctoMap's tie-breaking and stop rules)
-            if tx < ty:
-                if tx < tz:
-                    kx += sx
-                    tx += ux
-                    v = _morton_step(v, _X9, sx > 0)
-                    crossed = (kx & 7) == bx
-                else:
-                    kz += sz
-                    tz += uz
-                    v = _morton_step(v, _Z9, sz > 0)
-                    crossed = (kz & 7) == bz
-            else:
-                if ty < tz:
-                    ky += sy
-                    ty += uy
-                    v = _morton_step(v, _Y9, sy > 0)
-                    crossed = (ky & 7) == by
-                else:
-                    kz += sz
-                    tz += uz
-                    v = _morton_step(v, _Z9, sz > 0)
-                    crossed = (kz & 7) == bz
-            to_end -= 1
-            if to_end == 0 and kx == ekx and ky == eky and kz == ekz:
-                break
-            if min(tx, min(ty, tz)) > length64:
-                break
-            if crossed:
-                b, n_bricks = _brick_of(kx, ky, kz, tab, bricks, n_bricks, tmask)
+
+def _make_scan_bricks(stop_near_hits: bool):
+    """scan_bricks, or (stop_near_hits, a compile-time constant) its variant for `clean`'s void
+    evidence: no endpoints, and each ray stops at the first voxel of the near-hit table."""
+
+    @njit(cache=True, nogil=True)
+    def scan_bricks(points, origin, resolution, max_range, tab, touched, occ, bricks, near_keys, near_bits):
+        """Voxels updated by one scan, as bricks of 8x8x8 voxels, into caller-owned buffers.
+
+        Returns (n_bricks, steps); n_bricks = -1 when the buffers are too small (the caller grows
+        them and calls again). Per brick: its code (Morton code >> 9) and two 512-bit masks
+        (8 x int64) of the voxels touched by the scan and of those holding an endpoint (occupied
+        wins over free, whatever the order rays come in). points: (N, 3) float32 world
+        coordinates; origin: (3,) float32; max_range < 0 means unlimited. Coordinates must already
+        be checked to lie in key range. near_keys / near_bits: the near-hit table (only read by
+        the stopping variant).
+        The DDA state lives in scalars (registers), the in-brick Morton index is stepped with
+        dilated arithmetic, and the brick table is consulted only when a step crosses into another
+        brick, so a step is a few compares and one OR into a mask that stays in cache.
+        """
+        tmask = tab.shape[0] - 1
+        nmask = near_keys.shape[0] - 1
+        res_factor = 1.0 / resolution
+        okx = _coord_key(origin[0], res_factor)
+        oky = _coord_key(origin[1], res_factor)
+        okz = _coord_key(origin[2], res_factor)
+        n_bricks = 0
+        steps = 0
+        for i in range(points.shape[0]):
+            cut, ekx, eky, ekz, tx, ty, tz, ux, uy, uz, sx, sy, sz, length64 = ray_setup(
+                points, i, origin, okx, oky, okz, resolution, max_range)
+            if not cut and not stop_near_hits:  # a ray cut at max range marks no endpoint (OctoMap computeUpdate)
+                b, n_bricks = _brick_of(ekx, eky, ekz, tab, bricks, n_bricks, tmask)
                 if b < 0:
                     return -1, steps
-    return n_bricks, steps
+                v = _in_brick(ekx, eky, ekz)
+                bit = np.int64(1) << (v & 63)
+                touched[b, v >> 6] |= bit
+                occ[b, v >> 6] |= bit
+            if ekx == okx and eky == oky and ekz == okz:
+                continue
+            # free voxels from the origin's up to (not including) the end voxel (computeRayKeys)
+            kx, ky, kz = okx, oky, okz
+            b, n_bricks = _brick_of(kx, ky, kz, tab, bricks, n_bricks, tmask)
+            if b < 0:
+                return -1, steps
+            near = -1
+            if stop_near_hits:
+                near = _near_row(near_keys, morton3(kx >> 3, ky >> 3, kz >> 3), nmask)
+            v = _in_brick(kx, ky, kz)
+            bx = 0 if sx > 0 else 7  # the key & 7 that starts a new brick when stepping along x
+            by = 0 if sy > 0 else 7
+            bz = 0 if sz > 0 else 7
+            # every step moves one axis one voxel towards the end key, so the ray can reach it only
+            # after exactly this many steps (an axis that overshoots never comes back)
+            to_end = abs(ekx - okx) + abs(eky - oky) + abs(ekz - okz)
+            while True:
+                if stop_near_hits and near >= 0 and (near_bits[near, v >> 6] >> (v & 63)) & 1:
+                    break
+                if not stop_near_hits or near < 0 or not (near_bits[near, 8 + (v >> 6)] >> (v & 63)) & 1:
+                    touched[b, v >> 6] |= np.int64(1) << (v & 63)
+                steps += 1
+                # advance (Amanatides-Woo with OctoMap's tie-breaking and stop rules)
+                if tx < ty:
+                    if tx < tz:
+                        kx += sx
+                        tx += ux
+                        v = _morton_step(v, _X9, sx > 0)
+                        crossed = (kx & 7) == bx
+                    else:
+                        kz += sz
+                        tz += uz
+                        v = _morton_step(v, _Z9, sz > 0)
+                        crossed = (kz & 7) == bz
+                else:
+                    if ty < tz:
+                        ky += sy
+                        ty += uy
+                        v = _morton_step(v, _Y9, sy > 0)
+                        crossed = (ky & 7) == by
+                    else:
+                        kz += sz
+                        tz += uz
+                        v = _morton_step(v, _Z9, sz > 0)
+                        crossed = (kz & 7) == bz
+                to_end -= 1
+                if to_end == 0 and kx == ekx and ky == eky and kz == ekz:
+                    break
+                if min(tx, min(ty, tz)) > length64:
+                    break
+                if crossed:
+                    b, n_bricks = _brick_of(kx, ky, kz, tab, bricks, n_bricks, tmask)
+                    if b < 0:
+                        return -1, steps
+                    if stop_near_hits:
+                        near = _near_row(near_keys, morton3(kx >> 3, ky >> 3, kz >> 3), nmask)
+        return n_bricks, steps
+
+    return scan_bricks
+
+
+scan_bricks = _make_scan_bricks(False)
+# clean's void evidence (voxtool.clean): the free voxels of each ray up to the first voxel within
+# d_s of one of the scan's hits, as DUFOMap casts them (its ray_passthrough_hits = false)
+scan_bricks_to_near_hits = _make_scan_bricks(True)
+NO_NEAR_HITS = (np.full(1, -1, dtype=np.int64), np.zeros((1, 16), dtype=np.int64))
 
 
 @njit(cache=True, nogil=True)

@@ -14,12 +14,14 @@ from voxtool.errors import ParameterError, SourceError
 from voxtool.kernels import octree as K
 from voxtool.kernels.raycast import (
     BRICK_BITS,
+    NO_NEAR_HITS,
     BrickBuffers,
     balanced_cuts,
     brick_voxels,
     expand_bricks,
     ray_signatures,
     scan_bricks,
+    scan_bricks_to_near_hits,
 )
 from voxtool.keys import coords_to_keys
 from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
@@ -34,13 +36,16 @@ BRICKS_PER_PART = 2_048  # likewise, bricks per thread when expanding them to vo
 _BUFFERS = threading.local()
 
 
-def _trace_part(scan: Scan, params: MapParams, lo: int, hi: int) -> tuple:
+def _trace_part(scan: Scan, params: MapParams, lo: int, hi: int, near_hits=None) -> tuple:
     """Trace rays lo..hi into this thread's brick buffers; returns copies of the used part,
-    sorted by brick code."""
+    sorted by brick code. near_hits: a near-hit table (kernels.clean.near_hits_table) at which
+    rays stop, marking no endpoints (clean's void evidence)."""
     buf = getattr(_BUFFERS, "bricks", None) or BrickBuffers()
+    trace = scan_bricks if near_hits is None else scan_bricks_to_near_hits
+    near_keys, near_bits = NO_NEAR_HITS if near_hits is None else near_hits
     while True:
-        n, steps = scan_bricks(scan.points[lo:hi], scan.origin, params.resolution, params.max_range,
-                               buf.tab, buf.touched, buf.occ, buf.bricks)
+        n, steps = trace(scan.points[lo:hi], scan.origin, params.resolution, params.max_range,
+                         buf.tab, buf.touched, buf.occ, buf.bricks, near_keys, near_bits)
         if n >= 0:
             break
         buf = BrickBuffers(2 * buf.bricks.shape[0])
@@ -106,10 +111,10 @@ def bricks_to_updates(bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray, 
     return out, distinct, starts
 
 
-def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1, group_of=None) -> tuple:
+def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1, group_of=None, near_hits=None) -> tuple:
     """(Morton-sorted code << 1 | occupied updates of one scan, its DDA step count, rays merged
     into others (0 unless params.merge_rays), (distinct brick codes, their update starts)).
-    group_of: sorted by group first (bricks_to_updates)."""
+    group_of: sorted by group first (bricks_to_updates); near_hits: see _trace_part."""
     n = scan.points.shape[0]
     if n == 0:
         return np.empty(0, dtype=np.int64), 0, 0, None
@@ -119,7 +124,7 @@ def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1, group_o
     if params.merge_rays:
         scan = merge_rays(scan, params)
         merged = n - scan.points.shape[0]
-    parts = run_parts(threads, lambda run: _trace_part(scan, params, *run), ray_parts(scan, threads))
+    parts = run_parts(threads, lambda run: _trace_part(scan, params, *run, near_hits), ray_parts(scan, threads))
     if len(parts) == 1:
         bricks, touched, occ, steps = parts[0]
     else:
