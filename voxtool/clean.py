@@ -78,7 +78,7 @@ class VoidMap:
         hits (kernels.clean.near_hits_table; map-independent: runs on the read-ahead thread
         while the last scan updates the void map)."""
         from voxtool.kernels.clean import near_hits_table
-        from voxtool.keys import coords_to_keys, morton_encode
+        from voxtool.keys import coords_to_keys, morton_encode, unique_codes
         from voxtool.maps.octree import scan_bricks_updates
 
         t0 = time.perf_counter()
@@ -86,7 +86,7 @@ class VoidMap:
         if self.params.max_range >= 0:  # a ray cut at max range hits nothing
             reach = np.linalg.norm(points.astype(np.float64) - scan.origin, axis=1)
             points = points[reach <= self.params.max_range]
-        hits = np.unique(morton_encode(coords_to_keys(points, self.params.resolution, what=f"{scan.source}: point")))
+        hits = unique_codes(morton_encode(coords_to_keys(points, self.params.resolution, what=f"{scan.source}: point")))
         size = 1 << max(10, int(hits.shape[0]).bit_length() + 1)  # bricks near hits: ~hits / 2
         while True:
             table = (np.full(size, -1, dtype=np.int64), np.zeros((size, 16), dtype=np.int64))

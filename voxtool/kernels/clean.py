@@ -69,6 +69,9 @@ def ball_offsets(radius):
 
 
 SEGMENT_SAMPLES_PER_VOXEL = 4  # samples along a hit's segment per voxel edge
+_XYZ = np.arange(512, dtype=np.int64)
+# the 9-bit Morton index inside a brick of x + 8 y + 64 z (x in bits 0, 3, 6: kernels.morton)
+IN_BRICK = sum(((_XYZ >> (3 * a + b)) & 1) << (3 * b + a) for a in range(3) for b in range(3))
 
 
 @njit(cache=True, nogil=True)
@@ -111,18 +114,31 @@ def near_hits_table(points, hits, origin, resolution, length, offsets, keys, bit
                 if row < 0 or used * 2 > keys.shape[0]:
                     return False
             bits[row, (code & 511) >> 6] |= np.int64(1) << (code & 63)
+    # the balls: hits come Morton-sorted, so runs of them share a brick; the rows of the 27 bricks
+    # around the current one are remembered (most of a ball's marks then cost no look-up)
+    rows = np.empty(27, dtype=np.int64)
+    hit_brick = np.int64(-1)
     for i in range(hits.shape[0]):
+        code = hits[i]
+        if code >> 9 != hit_brick:
+            hit_brick = code >> 9
+            rows[:] = -2
+        kx, ky, kz = compact16(code), compact16(code >> 1), compact16(code >> 2)
+        bx, by, bz = kx >> 3, ky >> 3, kz >> 3
         for j in range(offsets.shape[0]):
-            near = _moved(hits[i], offsets[j, 0], offsets[j, 1], offsets[j, 2])
-            if near < 0:
+            nx, ny, nz = kx + offsets[j, 0], ky + offsets[j, 1], kz + offsets[j, 2]
+            if nx < 0 or ny < 0 or nz < 0 or nx > 0xFFFF or ny > 0xFFFF or nz > 0xFFFF:
                 continue
-            if near >> 9 != last_brick:
-                last_brick = near >> 9
-                row, new = _brick_row(keys, last_brick, mask, True)
+            d = ((nx >> 3) - bx + 1) + 3 * ((ny >> 3) - by + 1) + 9 * ((nz >> 3) - bz + 1)
+            row = rows[d]
+            if row == -2:
+                row, new = _brick_row(keys, morton3(nx >> 3, ny >> 3, nz >> 3), mask, True)
                 used += new
                 if row < 0 or used * 2 > keys.shape[0]:
                     return False
-            bits[row, 8 + ((near & 511) >> 6)] |= np.int64(1) << (near & 63)
+                rows[d] = row
+            inner = IN_BRICK[(nx & 7) | ((ny & 7) << 3) | ((nz & 7) << 6)]
+            bits[row, 8 + (inner >> 6)] |= np.int64(1) << (inner & 63)
     return True
 
 
