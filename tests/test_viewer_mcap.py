@@ -1,6 +1,7 @@
-"""Maps as MCAP for robotics viewers, read back with readers voxtool did not write: the mcap
-library with Foxglove's protobuf classes, mcap-ros2-support's decoder, rosbags, and OctoMap
-itself (pyoctomap) for the tree stream."""
+"""Maps as MCAP for robotics viewers, read back with readers voxtool did not write: rosbags'
+AnyReader and mcap-ros2-support's decoder (each from the definitions the file embeds), and
+OctoMap itself (pyoctomap) for the tree stream; the embedded foxglove_msgs definitions are
+checked against Foxglove's schema package."""
 
 from __future__ import annotations
 
@@ -42,8 +43,19 @@ def octomap_reads_stream(data: bytes, resolution: float, tmp_path):
     return voxels(bt.codes[bt.occupied], bt.depths[bt.occupied]), voxels(bt.codes[~bt.occupied], bt.depths[~bt.occupied])
 
 
+def read_ros2(path):
+    """{topic: (msgtype, log time, message)} of a one-message-per-topic MCAP, by rosbags."""
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([path]) as reader:
+        out = {}
+        for conn, log_time, raw in reader.messages():
+            assert conn.topic not in out
+            out[conn.topic] = (conn.msgtype, log_time, reader.deserialize(raw, conn.msgtype))
+    return out
+
+
 def test_map_mcap_scene_and_octomap_topics(sample_map, tmp_path):
-    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
@@ -54,17 +66,22 @@ def test_map_mcap_scene_and_octomap_topics(sample_map, tmp_path):
     occ, free, res, thr = snapshot_sets(path)
     with open(out, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()], validate_crcs=True)
-        messages = {channel.topic: (schema, message) for schema, channel, message in reader.iter_messages()}
-        assert set(messages) == {"/voxtool/map", "/octomap_binary"}
-        schema, message = messages["/voxtool/map"]
-        assert schema.name == "foxglove.SceneUpdate" and schema.encoding == "protobuf"
-        scene = SceneUpdate.FromString(message.data)  # Foxglove's own classes
-        ros = list(reader.iter_decoded_messages(topics=["/octomap_binary"]))
+        assert reader.get_header().profile == "ros2"
+        decoded = {d.channel.topic: d for d in reader.iter_decoded_messages()}
+    assert set(decoded) == {"/voxtool/map", "/octomap_binary"}
+    assert {d.schema.encoding for d in decoded.values()} == {"ros2msg"}
+    assert decoded["/voxtool/map"].schema.name == "foxglove_msgs/msg/SceneUpdate"
+    scene = decoded["/voxtool/map"].decoded_message  # mcap-ros2-support's decoder
+    by_rosbags = read_ros2(out)["/voxtool/map"][2]
     (entity,) = scene.entities
     assert entity.id == "occupied" and entity.frame_id == "map"
     # every cube is a leaf of the max-likelihood tree: together exactly the occupied voxels
     centres = np.array([[c.pose.position.x, c.pose.position.y, c.pose.position.z] for c in entity.cubes])
+    assert np.array_equal(centres, [[c.pose.position.x, c.pose.position.y, c.pose.position.z]
+                                    for c in by_rosbags.entities[0].cubes])
+    assert {(c.pose.orientation.x, c.pose.orientation.w) for c in entity.cubes} == {(0.0, 1.0)}
     sizes = np.array([c.size.x for c in entity.cubes])
+    assert np.array_equal(sizes, [c.size.z for c in entity.cubes])
     cells = np.round(sizes / res).astype(np.int64)
     depths = (16 - np.log2(cells)).astype(np.uint8)
     lo_keys = np.round(centres / res - cells[:, None] / 2 + TREE_MAX_VAL).astype(np.uint16)
@@ -81,74 +98,85 @@ def test_map_mcap_scene_and_octomap_topics(sample_map, tmp_path):
     ends = colormaps[COLORMAP]([0.0, 1.0])[:, :3]
     assert np.allclose(rgb[np.argmin(z)], ends[0], atol=1e-6) and np.allclose(rgb[np.argmax(z)], ends[1], atol=1e-6)
     assert (np.diff(rgb[np.argsort(z, kind="stable")][:, 1]) >= -1e-6).all()  # viridis: green rises with height
-    (decoded,) = ros
-    msg = decoded.decoded_message
-    assert decoded.schema.name == "octomap_msgs/msg/Octomap" and decoded.schema.encoding == "ros2msg"
+    ros = decoded["/octomap_binary"]
+    msg = ros.decoded_message
+    assert ros.schema.name == "octomap_msgs/msg/Octomap"
     assert msg.binary and msg.id == "OcTree" and msg.resolution == pytest.approx(res)
     data = np.asarray(msg.data, dtype=np.int8).tobytes()
     occ2, free2 = octomap_reads_stream(data, res, tmp_path)
     assert np.array_equal(occ2, occ) and np.array_equal(free2, free)
 
 
-def test_ros2_only_map_mcap_opens_in_rosbags(sample_map, tmp_path):
-    from rosbags.highlevel import AnyReader
-
+def test_map_mcap_opens_in_rosbags(sample_map, tmp_path):
+    """One file for every viewer: rosbags' AnyReader opens both topics (before, the Foxglove
+    scene was protobuf and rosbags could not open the file); --ros2-only changes nothing."""
     path, _ = sample_map
-    out = tmp_path / "ros.mcap"
-    assert cli("export", path, "-o", out, "--ros2-only")[0] == 0
-    with AnyReader([out]) as reader:
-        (conn,) = [c for c in reader.connections if c.topic == "/octomap_binary"]
-        assert conn.msgtype == "octomap_msgs/msg/Octomap"
-        (raw,) = [raw for _, _, raw in reader.messages(connections=[conn])]
-        msg = reader.deserialize(raw, conn.msgtype)
+    out, old_flag = tmp_path / "map.mcap", tmp_path / "flag.mcap"
+    assert cli("export", path, "-o", out)[0] == 0
+    assert cli("export", path, "-o", old_flag, "--ros2-only")[0] == 0
+    got = read_ros2(out)
+    assert {t: v[0] for t, v in got.items()} == {"/octomap_binary": "octomap_msgs/msg/Octomap",
+                                                 "/voxtool/map": "foxglove_msgs/msg/SceneUpdate"}
+    assert {t: v[0] for t, v in read_ros2(old_flag).items()} == {t: v[0] for t, v in got.items()}
+    msg = got["/octomap_binary"][2]
     occ, free, res, _ = snapshot_sets(path)
     assert msg.binary and msg.id == "OcTree" and msg.resolution == pytest.approx(res)
     occ2, free2 = octomap_reads_stream(msg.data.astype(np.int8).tobytes(), res, tmp_path)
     assert np.array_equal(occ2, occ) and np.array_equal(free2, free)
 
 
-def test_free_entity_and_refusals(tmp_path):
-    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-    from mcap.reader import make_reader
+def test_embedded_scene_definition_has_foxglove_schema_fields():
+    """The foxglove_msgs types the file embeds have the fields of Foxglove's schema package, in
+    its order (ROS types: Timestamp -> builtin_interfaces/Time, Pose -> geometry_msgs/Pose...)."""
+    pb = pytest.importorskip("foxglove_schemas_protobuf.SceneUpdate_pb2")
+    from voxtool.io.ros2 import typestore
 
+    store = typestore()
+    seen = set()
+
+    def check(descriptor, rostype):
+        if rostype in seen:
+            return
+        seen.add(rostype)
+        ros_fields = [name for name, _ in store.fielddefs[rostype][1]]
+        assert ros_fields == [f.name for f in descriptor.fields], rostype
+        for f in descriptor.fields:  # Foxglove's types, not google.protobuf's Timestamp and Duration
+            if f.message_type is not None and f.message_type.full_name.startswith("foxglove."):
+                ((kind, detail),) = [t for name, t in store.fielddefs[rostype][1] if name == f.name]
+                # a type by name, or a sequence / array of one: ((NAME, type), size)
+                check(f.message_type, detail if isinstance(detail, str) else detail[0][1])
+
+    check(pb.SceneUpdate.DESCRIPTOR, "foxglove_msgs/msg/SceneUpdate")
+    assert {"foxglove_msgs/msg/SceneEntity", "foxglove_msgs/msg/CubePrimitive", "foxglove_msgs/msg/Color",
+            "geometry_msgs/msg/Pose", "geometry_msgs/msg/Point"} <= seen
+
+
+def test_free_entity(tmp_path):
     path = tmp_path / "small.vxm"  # free space as cubes is large: one scan, 8 m rays
     assert cli("build", "--sample", "--stop", 1, "--max-range", 8, "-o", path)[0] == 0
     out = tmp_path / "free.mcap"
     assert cli("export", path, "-o", out, "--free")[0] == 0
-    with open(out, "rb") as f:
-        (msg,) = [m for _, c, m in make_reader(f).iter_messages() if c.topic == "/voxtool/map"]
-    scene = SceneUpdate.FromString(msg.data)
+    scene = read_ros2(out)["/voxtool/map"][2]
     assert [e.id for e in scene.entities] == ["occupied", "free"]
     assert all(c.color.a < 0.2 for c in scene.entities[1].cubes[:100])
     _, free, res, _ = snapshot_sets(path)
     sizes = np.array([c.size.x for c in scene.entities[1].cubes]) / res
     assert int(np.round(sizes ** 3).sum()) == free.shape[0]
-    code, _, err = cli("export", path, "-o", tmp_path / "x.mcap", "--free", "--ros2-only")
-    assert code == 2 and err.count("\n") == 1 and not (tmp_path / "x.mcap").exists()
 
 
 def test_map_mcap_is_stamped_with_the_last_scan(tmp_path):
     """The exported map's messages (log time, ROS header stamp, Foxglove entity time) carry the
     time of the last scan the map holds: 0.3 s for 4 scans at 10 Hz from --poses times."""
-    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-    from mcap.reader import make_reader
-    from rosbags.highlevel import AnyReader
-
     from voxtool.synthetic import Lidar, street, write_pcd_scans
 
     scans = tmp_path / "scans"
     write_pcd_scans(street(4, seed=2, lidar=Lidar(beams=8, columns=256)), scans)
     path = tmp_path / "m.vxm"
     assert cli("build", scans, "--poses", scans / "poses.txt", "--resolution", 0.4, "-o", path)[0] == 0
-    ros, both = tmp_path / "ros.mcap", tmp_path / "both.mcap"
-    assert cli("export", path, "-o", ros, "--ros2-only")[0] == 0
-    assert cli("export", path, "-o", both)[0] == 0
-    with AnyReader([ros]) as reader:
-        ((_, log_time, raw),) = list(reader.messages())
-        msg = reader.deserialize(raw, "octomap_msgs/msg/Octomap")
-    assert log_time == 300_000_000 and (msg.header.stamp.sec, msg.header.stamp.nanosec) == (0, 300_000_000)
-    with open(both, "rb") as f:
-        messages = list(make_reader(f).iter_messages())
-    assert [m.log_time for _, _, m in messages] == [300_000_000] * 2
-    (scene,) = [SceneUpdate.FromString(m.data) for _, c, m in messages if c.topic == "/voxtool/map"]
-    assert scene.entities[0].timestamp.ToNanoseconds() == 300_000_000
+    out = tmp_path / "map.mcap"
+    assert cli("export", path, "-o", out)[0] == 0
+    got = read_ros2(out)
+    assert [v[1] for v in got.values()] == [300_000_000] * 2
+    msg, scene = got["/octomap_binary"][2], got["/voxtool/map"][2]
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (0, 300_000_000)
+    assert (scene.entities[0].timestamp.sec, scene.entities[0].timestamp.nanosec) == (0, 300_000_000)

@@ -257,11 +257,12 @@ def crop_keys(box, resolution: float) -> tuple[np.ndarray, np.ndarray]:
 
 def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False,
                progress: bool | None = False, ros2_only: bool = False, view: str | None = None,
-               slice_z: float | None = None, crop: tuple | None = None) -> dict:
+               slice_z: float | None = None, crop: tuple | None = None) -> dict:  # noqa: ARG001
     """Write a map (.vxm, .bt or a sharded map) as .bt, .ply, .pcd, .png or .mcap; returns what
     was written. A sharded map is read part by part, except for .mcap and .vxm and with `crop`
     (whole). `view` and `slice_z` are for pictures (io.picture); `crop` (xmin, ymin, zmin, xmax,
-    ymax, zmax, metres): only the voxels whose centres lie in that box."""
+    ymax, zmax, metres): only the voxels whose centres lie in that box. `ros2_only` changes
+    nothing (every .mcap is ROS 2 now) and is kept for callers that pass it."""
     from voxtool.atomic import check_writable
     from voxtool.io.sharded_export import STREAMED, export_sharded
     from voxtool.progress import bar
@@ -272,9 +273,7 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
         raise ParameterError(f"{output}: only an OctoMap .bt is imported as a snapshot ({path} is one already)")
     writer = exporter(output)
     check_writable(output)
-    if ros2_only and kind != ".mcap":
-        raise ParameterError(f"{output}: --ros2-only is for .mcap exports")
-    extra = {"ros2_only": True} if ros2_only else {}
+    extra: dict = {}
     if view is not None or slice_z is not None:
         if kind != ".png":
             raise ParameterError(f"{output}: --view and --slice are for .png pictures")

@@ -78,16 +78,20 @@ def check_plot(plot) -> None:
 
 
 def view_options(func):
-    """--view OUT.mcap / --view-period: the replay of decode and merge (voxtool.codec.replay)."""
+    """--view OUT.mcap / --view-period / --view-keyframe: the replay of decode and merge
+    (voxtool.codec.replay)."""
+    func = click.option("--view-keyframe", default=10.0, show_default=True, type=click.FloatRange(min=0.0),
+                        help="--view: a keyframe (the whole map, so a viewer that seeks shows all of it) at least this "
+                             "many seconds of packet time after the last one (0: every message).")(func)
     func = click.option("--view-period", default=1.0, show_default=True, type=click.FloatRange(min=0.0),
                         help="--view: at least this many seconds of packet time between SceneUpdates (0: one per "
                              "distinct packet time).")(func)
     return click.option("--view", type=click.Path(path_type=Path), metavar="OUT.mcap",
-                        help="Also write the map as it grew, for Foxglove: foxglove.SceneUpdate messages over packet "
-                             "time, each robot's voxels in its own colour (docs/viewing.md).")(func)
+                        help="Also write the map as it grew, for Foxglove (and rosbags): ROS 2 foxglove_msgs/SceneUpdate "
+                             "messages over packet time, each robot's voxels in its own colour (docs/viewing.md).")(func)
 
 
-def replay_for(view, period: float):
+def replay_for(view, period: float, keyframe: float = 10.0):
     """The replay `--view OUT.mcap` writes (None without it), refused early if it cannot be written."""
     if view is None:
         return None
@@ -98,7 +102,7 @@ def replay_for(view, period: float):
     if view.suffix.lower() != ".mcap":
         raise ParameterError(f"--view {view}: written as .mcap")
     check_writable(view)
-    return Replay(view, period)
+    return Replay(view, period, keyframe)
 
 
 def cluster_options(func):

@@ -19,7 +19,7 @@ from voxtool.cli.common import emit, handle_errors, replay_for, summary_rows, vi
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @view_options
 @handle_errors
-def decode(log, output, as_json, voxels, relay, d_inf, progress, view, view_period):
+def decode(log, output, as_json, voxels, relay, d_inf, progress, view, view_period, view_keyframe):
     """Replay a packet log into a state map (free / occupied / unknown)."""
     from voxtool.codec.fusion import fuse, packets_of, save_state_map
 
@@ -50,7 +50,7 @@ def decode(log, output, as_json, voxels, relay, d_inf, progress, view, view_peri
         emit(result, as_json, summary_rows(result), written=output)
         return
 
-    replay = replay_for(view, view_period)
+    replay = replay_for(view, view_period, view_keyframe)
     result = fuse([log], progress=progress, on_packet=replay.packet if replay else None)
     if output is not None:
         save_state_map(output, result, {"source": str(log), "packets": result.packets})
@@ -67,5 +67,5 @@ def decode(log, output, as_json, voxels, relay, d_inf, progress, view, view_peri
     rows = [("packets", f"{result.packets:,}"), ("occupied voxels", f"{occ:,}"), ("free voxels", f"{data['free_voxels']:,}")]
     if replay is not None:
         data.update(replay.write())
-        rows.append(("view", f"{data['view']} ({data['view_messages']} SceneUpdates)"))
+        rows.append(("view", f"{data['view']} ({data['view_messages']} SceneUpdates, {data['view_keyframes']} keyframes)"))
     emit(data, as_json, rows, written=output)

@@ -12,13 +12,12 @@ from voxtool.cli.common import emit, handle_errors
 @click.command()
 @click.argument("map_file", type=click.Path(path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
-              help="Output file; its suffix picks the format: .bt, .ply, .pcd, .png, .mcap (Foxglove scene + ROS 2 "
-                   "octomap_msgs/Octomap) or .vxm (an OctoMap .bt imported).")
+              help="Output file; its suffix picks the format: .bt, .ply, .pcd, .png, .mcap (ROS 2: a "
+                   "foxglove_msgs/SceneUpdate and an octomap_msgs/Octomap) or .vxm (an OctoMap .bt imported).")
 @click.option("--free", "include_free", is_flag=True,
               help="Also write free voxels (.ply/.pcd, coloured; a .bt and a picture always hold them).")
-@click.option("--ros2-only", is_flag=True,
-              help=".mcap: only the ROS 2 /octomap_binary topic (rosbags cannot open a file that also holds the "
-                   "Foxglove protobuf scene).")
+@click.option("--ros2-only", is_flag=True, hidden=True,
+              help="Changes nothing: every .mcap export is ROS 2 (kept for scripts that pass it).")
 @click.option("--view", type=click.Choice(["top", "front", "side"]), default=None,
               help=".png: look from above (default), from the front (along +y) or the side (along -x).")
 @click.option("--slice", "slice_z", type=float, default=None, metavar="Z",
@@ -29,7 +28,7 @@ from voxtool.cli.common import emit, handle_errors
 @click.option("--json", "as_json", is_flag=True, help="Print what was written as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def export(map_file, output, include_free, ros2_only, view, slice_z, crop, as_json, progress):
+def export(map_file, output, include_free, ros2_only, view, slice_z, crop, as_json, progress):  # noqa: ARG001
     """Export a map snapshot (.vxm) or an OctoMap .bt: .bt (OctoMap binary, the max-likelihood
     tree), .ply/.pcd (voxel centres), .png (a picture with colour bar, legend, scale bar and axes
     in metres; --view, --slice), .mcap (for Foxglove, RViz and rosbags), or import an OctoMap .bt
@@ -46,7 +45,7 @@ def export(map_file, output, include_free, ros2_only, view, slice_z, crop, as_js
             raise ParameterError(f"--crop {crop}: give six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres)") from None
         if len(box) != 6:
             raise ParameterError(f"--crop {crop}: give six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres)")
-    written = export_map(map_file, output, include_free, progress, ros2_only, view, slice_z, box)
+    written = export_map(map_file, output, include_free, progress, view=view, slice_z=slice_z, crop=box)
     rows = [(key.replace("_", " "), f"{value:,}" if isinstance(value, int) else str(value))
             for key, value in written.items() if value is not None]
     emit(written, as_json, rows, written=output)

@@ -19,12 +19,12 @@ from voxtool.cli.common import emit, handle_errors, replay_for, view_options
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @view_options
 @handle_errors
-def merge(logs, output, extrinsic, simulate_loss, seed, as_json, progress, view, view_period):
+def merge(logs, output, extrinsic, simulate_loss, seed, as_json, progress, view, view_period, view_keyframe):
     """Fuse the packet logs of several robots: every voxel takes its latest-stamped state."""
     from voxtool.codec.fusion import Extrinsic, fuse, save_state_map
 
     ext = dict(Extrinsic.parse(e) for e in extrinsic)
-    replay = replay_for(view, view_period)
+    replay = replay_for(view, view_period, view_keyframe)
     result = fuse(list(logs), ext, progress=progress, on_packet=replay.packet if replay else None)
     occ = int((result.states == 1).sum())
     out = {"packets": result.packets, "occupied_voxels": occ, "free_voxels": int(result.states.shape[0] - occ),
@@ -46,5 +46,5 @@ def merge(logs, output, extrinsic, simulate_loss, seed, as_json, progress, view,
                                    f"keyframes {sim['keyframes']}, equal to lossless: {sim['equal_to_lossless']}"))
     if replay is not None:
         out.update(replay.write())
-        rows.append(("view", f"{out['view']} ({out['view_messages']} SceneUpdates, colours {out['view_colours']})"))
+        rows.append(("view", f"{out['view']} ({out['view_messages']} SceneUpdates, {out['view_keyframes']} keyframes, colours {out['view_colours']})"))
     emit(out, as_json, rows, written=output)

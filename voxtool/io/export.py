@@ -143,10 +143,10 @@ def write_vxm(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
 
 
 def write_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-               ros2_only: bool = False, stamp_ns: int = 0) -> dict:
+               stamp_ns: int = 0) -> dict:
     from voxtool.io.viewer_mcap import write_map_mcap
 
-    return write_map_mcap(path, leaves, resolution, threshold_log, include_free, ros2_only, stamp_ns)
+    return write_map_mcap(path, leaves, resolution, threshold_log, include_free, stamp_ns)
 
 
 # each writes the file and returns what it wrote (format, counts)
