@@ -22,6 +22,7 @@ from voxtool.cli.build import build  # noqa: E402
 from voxtool.cli.cache_bench import cache_bench_cmd  # noqa: E402
 from voxtool.cli.clean import clean  # noqa: E402
 from voxtool.cli.common import BACKEND_NAMES, SAMPLE_DIR  # noqa: E402
+from voxtool.cli.compile import compile_cmd  # noqa: E402
 from voxtool.cli.decode import decode  # noqa: E402
 from voxtool.cli.diff import diff  # noqa: E402
 from voxtool.cli.encode import encode  # noqa: E402
@@ -66,7 +67,7 @@ def main() -> None:
     """
 
 
-for _command in (build, clean, cache_bench_cmd, encode, decode, merge, query, stats, diff, export, view):
+for _command in (build, clean, cache_bench_cmd, encode, decode, merge, query, stats, diff, export, view, compile_cmd):
     main.add_command(_command)
 
 

@@ -148,7 +148,7 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
     if opts.codec in ("cm", "cm1"):
         from voxtool.codec.cm import warm_up
 
-        warm_up()
+        warm_up(opts.codec, decode=False)
 
     with PacketLogWriter(output) as log:
 

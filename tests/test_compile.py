@@ -1,0 +1,41 @@
+"""`voxtool compile` fills numba's cache so that no command compiles on its first run: checked
+with numba's own cache log (NUMBA_DEBUG_CACHE) on a cache folder that starts empty, as on a
+fresh install."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+
+def voxtool(args, env):
+    proc = subprocess.run([sys.executable, "-m", "voxtool.cli", *map(str, args), "--no-progress"],
+                          capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout + proc.stderr
+
+
+def test_first_runs_after_compile_compile_nothing(tmp_path):
+    cache = tmp_path / "numba-cache"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    report = json.loads(voxtool(["compile", "--json"], env))
+    assert {"build", "encode --codec cm", "merge", "export .mcap", "clean", "diff"} <= set(report["seconds"])
+    saved = {p.name for p in cache.rglob("*.nbi")}
+    # the kernels of the build, the cm coder, clean and the hash map are in the cache
+    for kernel in ("raycast._make_scan_bricks", "octree.apply_bricks", "cm.", "clean.near_hits_table", "hashmap."):
+        assert any(kernel in name for name in saved), kernel
+
+    env["NUMBA_DEBUG_CACHE"] = "1"
+    d = tmp_path
+    for args in (["build", "--sample", "-o", d / "map.vxm"],
+                 ["encode", "--sample", "-o", d / "z.mcap"],
+                 ["encode", "--sample", "--codec", "cm", "--robot", "r2", "-o", d / "c.mcap"],
+                 ["merge", d / "z.mcap", d / "c.mcap", "-o", d / "fused.vxm"],
+                 ["export", d / "map.vxm", "-o", d / "map.mcap"],
+                 ["clean", "--sample", "-o", d / "static.pcd"]):
+        log = voxtool(args, env)
+        compiled = [line for line in log.splitlines() if "data saved" in line]
+        assert not compiled, (args[0], compiled[:3])
+        assert "data loaded" in log, args[0]  # numba's log is there: the check above can fail
