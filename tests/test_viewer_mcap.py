@@ -180,3 +180,20 @@ def test_map_mcap_is_stamped_with_the_last_scan(tmp_path):
     msg, scene = got["/octomap_binary"][2], got["/voxtool/map"][2]
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (0, 300_000_000)
     assert (scene.entities[0].timestamp.sec, scene.entities[0].timestamp.nanosec) == (0, 300_000_000)
+
+
+def test_sharded_map_mcap_equals_the_single_maps(tmp_path):
+    """A sharded map's .mcap (its parts' stored leaves joined, stamped with the build's last scan)
+    is the same file as the single snapshot's of the same scans."""
+    from voxtool.synthetic import Lidar, street, write_pcd_scans
+
+    scans = tmp_path / "scans"
+    write_pcd_scans(street(4, seed=3, lidar=Lidar(beams=8, columns=256)), scans)
+    common = [scans, "--poses", scans / "poses.txt", "--resolution", 0.4, "--no-progress"]
+    assert cli("build", *common, "-o", tmp_path / "one.vxm")[0] == 0
+    code, _, err = cli("build", *common, "-o", tmp_path / "parts", "--sharded", "--workers", "2")
+    assert code == 0, err
+    for name in ("one.vxm", "parts"):
+        assert cli("export", tmp_path / name, "-o", tmp_path / f"{name}.mcap")[0] == 0
+    assert (tmp_path / "parts.mcap").read_bytes() == (tmp_path / "one.vxm.mcap").read_bytes()
+    assert [v[1] for v in read_ros2(tmp_path / "parts.mcap").values()] == [300_000_000] * 2

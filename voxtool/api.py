@@ -160,7 +160,8 @@ def build_one_map(sources: list, options: SourceOptions, params: MapParams, sens
         if output is not None:
             from voxtool.io.mapfile import save_map
 
-            save_map(output, backend, {**info, **{k: report[k] for k in RECORDED_COUNTS}})
+            save_map(output, backend, {**info, **{k: report[k] for k in RECORDED_COUNTS},
+                                       "last_stamp_ns": report.get("last_stamp_ns") or 0})
         return result
     from voxtool.io import sharded as S
 
@@ -168,7 +169,7 @@ def build_one_map(sources: list, options: SourceOptions, params: MapParams, sens
     try:
         entries, report = distributed_build(client, [str(s) for s in sources], options, params, sensor,
                                             shard_depth=depth, progress=progress, sharded_dir=staging, info=info)
-        info.update({k: report[k] for k in RECORDED_COUNTS})
+        info.update({k: report[k] for k in RECORDED_COUNTS}, last_stamp_ns=report.get("last_stamp_ns") or 0)
         header = {"partitions": report["partitions"], "shard_depth": depth, "partition_rule": "fibonacci-hash",
                   "backend": "octree", "map_params": params.to_dict(), "sensor_model": sensor.to_dict(), "info": info}
         manifest = S.finish(staging, output, header, entries)
@@ -183,11 +184,18 @@ def build_one_map(sources: list, options: SourceOptions, params: MapParams, sens
 def load_leaves(path: str | os.PathLike) -> tuple[Leaves, float, float, dict]:
     """(leaves, resolution, threshold log-odds, info) of a .vxm snapshot or an OctoMap .bt file."""
     path = Path(path)
-    if path.is_dir():
-        from voxtool.io.sharded import load_sharded
+    if path.is_dir():  # the parts' stored leaves joined (rebuilding each part's tree, then the whole
+        # tree took a kaist03 0.1 m .mcap export to 2.9 GB against 1.3 GB for the single snapshot)
+        from voxtool.io.sharded import iter_part_leaves, read_manifest
+        from voxtool.maps.base import join_leaves
 
-        backend = load_sharded(path)
-        return backend.leaves(), backend.params.resolution, backend.sensor.threshold_log, {"backend": "octree"}
+        manifest = read_manifest(path)
+        parts, threshold = [], SensorModel().threshold_log
+        for _, part, part_threshold in iter_part_leaves(path):  # every part holds the map's sensor model
+            parts.append(part)
+            threshold = part_threshold
+        info = {"backend": "octree", "info": {"last_stamp_ns": manifest.get("info", {}).get("last_stamp_ns", 0)}}
+        return join_leaves(parts, consume=True), manifest["map_params"]["resolution"], threshold, info
     if path.suffix.lower() == ".bt":
         from voxtool.io.bt import read_bt
 

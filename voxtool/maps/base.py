@@ -23,12 +23,18 @@ class Leaves:
         return int(self.codes.shape[0])
 
 
-def join_leaves(parts: list[Leaves]) -> Leaves:
-    """Leaf sets that do not overlap (a map's parts, pieces of a crop) as one, in Morton order."""
-    codes = np.concatenate([p.codes for p in parts])
+def join_leaves(parts: list[Leaves], consume: bool = False) -> Leaves:
+    """Leaf sets that do not overlap (a map's parts, pieces of a crop) as one, in Morton order.
+    `consume`: empty the list once its arrays are copied, so that the parts' memory can go
+    before the sort (a whole map's leaves: 29 bytes a leaf at the peak instead of 50)."""
+    codes, depths, values = (np.concatenate([getattr(p, f) for p in parts]) for f in ("codes", "depths", "values"))
+    if consume:
+        parts.clear()
     order = np.argsort(codes, kind="stable")
-    return Leaves(codes[order], np.concatenate([p.depths for p in parts])[order],
-                  np.concatenate([p.values for p in parts])[order])
+    codes = codes[order]  # one array reordered at a time: each original goes as its copy is made
+    depths = depths[order]
+    values = values[order]
+    return Leaves(codes, depths, values)
 
 
 @dataclass
