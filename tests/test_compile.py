@@ -9,6 +9,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 
 def voxtool(args, env):
     proc = subprocess.run([sys.executable, "-m", "voxtool.cli", *map(str, args), "--no-progress"],
@@ -17,6 +19,7 @@ def voxtool(args, env):
     return proc.stdout + proc.stderr
 
 
+@pytest.mark.sweep  # 25-35 s of compilation from an empty cache: run by .ci/run after the quick suite
 def test_first_runs_after_compile_compile_nothing(tmp_path):
     cache = tmp_path / "numba-cache"
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}

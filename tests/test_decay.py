@@ -113,7 +113,13 @@ def test_cli_decay_on_a_generated_street(tmp_path):
     code, stdout, err = cli("stats", str(tmp_path / "decay.vxm"), "--json")
     assert code == 0, err
     assert json.loads(stdout)["free_voxels"] == out["decay"]["free_voxels"]
-    # a PCD directory without --poses has no scan times
+    # without --poses, a PCD directory's scan times come from the poses.txt beside its scans
+    code, stdout, err = cli("build", str(scans), "--resolution", "0.2", "--decay", "0.1", "--json",
+                            "-o", str(tmp_path / "beside.vxm"))
+    assert code == 0, err
+    assert json.loads(stdout)["free_voxels"] == out["decay"]["free_voxels"]
+    # ... and without that file it has none
+    (scans / "poses.txt").rename(tmp_path / "poses.txt")
     code, _, err = cli("build", str(scans), "--decay", "1", "-o", str(tmp_path / "none.vxm"))
     assert code != 0 and "increasing scan times" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "none.vxm").exists()

@@ -4,6 +4,7 @@ mcap-ros2-support's decoder) decode every header field, and logs of the old layo
 from __future__ import annotations
 
 import pytest
+from conftest import cli
 
 from voxtool.codec.log import LEGACY_SCHEMA, MESSAGE_TYPE, read_log
 from voxtool.codec.packet import HEADER, decode_packet
@@ -103,3 +104,30 @@ def test_log_names_its_writer_and_its_message_text_is_the_specs(sample_logs):
     fields = [line for line in embedded.splitlines() if not line.startswith("#")]  # the two lead comments
     assert [line.strip() for line in block.group(1).strip().splitlines()] == fields
     assert "key-32768 corner" in embedded
+
+
+def test_logs_on_clocks_years_apart(sample_logs, tmp_path):
+    """The sample's log is stamped in epoch time (its poses.txt); a generated street's from 0.
+    Fusing them warns that the latest stamp means nothing across them; the bandwidth windows
+    count only seconds that hold packets (a window per second of 53 years would not fit)."""
+    import numpy as np
+
+    from voxtool.codec.logstats import _bandwidth
+    from voxtool.synthetic import Lidar, street, write_pcd_scans
+
+    scans = tmp_path / "street"
+    write_pcd_scans(street(3, seed=5, lidar=Lidar(beams=4, columns=64)), scans)
+    (scans / "poses.txt").unlink()  # index / 10 Hz from 0
+    code, _, err = cli("encode", scans, "-o", tmp_path / "s.mcap", "--robot", "s", "--max-range", 20, "--no-progress")
+    assert code == 0, err
+    code, _, err = cli("merge", sample_logs["r1"][0], tmp_path / "s.mcap", "-o", tmp_path / "f.vxm", "--no-progress")
+    assert code == 0, err
+    assert err.count("voxtool: warning:") == 1 and "robot 'r1' is stamped" in err and "days after robot 's'" in err
+    code, _, err = cli("merge", sample_logs["a"][0], sample_logs["b"][0], "-o", tmp_path / "g.vxm", "--no-progress")
+    assert code == 0 and "warning" not in err, err
+
+    years = 5 * 365 * 86_400 * 10**9
+    got = _bandwidth(np.array([0, 10**8, years], np.int64), np.array([10, 20, 7], np.int64), 1.0)
+    assert got["max_Bps"] == 37.0  # the average over the 1 s span given; the busiest second holds 30
+    got = _bandwidth(np.array([0, 10**8, years], np.int64), np.array([10, 20, 7], np.int64), years / 1e9)
+    assert got["max_Bps"] == 30.0

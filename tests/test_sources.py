@@ -240,3 +240,39 @@ def test_tf_is_interpolated_at_the_cloud_stamp():
     assert series.at(3_000 + STAMP_TOLERANCE_NS) is not None
     assert series.at(3_000 + STAMP_TOLERANCE_NS + 1) is None
     assert series.at(1_000 - STAMP_TOLERANCE_NS - 1) is None
+
+
+def test_pcd_directory_takes_its_scan_times_from_poses_txt_beside(tmp_path):
+    """Without --poses, a PCD directory's scans keep their VIEWPOINT poses and take their times
+    from the poses.txt beside them; a poses.txt that does not fit is a warning, not times."""
+    import json
+
+    from conftest import cli
+
+    from voxtool.synthetic import Lidar, street, write_pcd_scans
+
+    d = tmp_path / "scans"
+    write_pcd_scans(street(3, seed=4, lidar=Lidar(beams=4, columns=64)), d)
+    rows = (d / "poses.txt").read_text().splitlines()
+    times = [1690309709.25, 1690309709.5, 1690309710.0]  # epoch seconds, not 10 Hz
+    # poses in the file moved 5 m: the scans' poses must still be their VIEWPOINTs
+    (d / "poses.txt").write_text("".join(
+        f"{t} {float(r.split()[1]) + 5} {' '.join(r.split()[2:])}\n" for t, r in zip(times, rows)))
+    viewpoint = [read_pcd(d / f"{i:06d}.pcd").viewpoint[:3] for i in range(3)]
+    scans = list(open_source(d).scans)
+    assert [s.stamp_ns for s in scans] == [int(round(t * 1e9)) for t in times]
+    for s, vp in zip(scans, viewpoint):
+        assert np.allclose(s.origin, vp, atol=1e-6)
+    # a packet log of the directory is stamped with them
+    code, out, err = cli("encode", d, "-o", tmp_path / "r.mcap", "--max-changes", 1, "--json", "--no-progress")
+    assert code == 0, err
+    assert json.loads(out)["packets"] >= 3
+    from voxtool.codec.fusion import packets_of
+
+    assert {p.stamp_ns for p in packets_of(tmp_path / "r.mcap")} == {int(round(t * 1e9)) for t in times}
+    # a file with a row too few: a warning naming it, the scans without times
+    (d / "poses.txt").write_text("".join(f"{t} 0 0 0 0 0 0 1\n" for t in times[:2]))
+    with pytest.warns(UserWarning, match="poses.txt: 2 rows for 3 scans"):
+        assert [s.stamp_ns for s in open_source(d).scans] == [0, 0, 0]
+    code, _, err = cli("build", d, "-o", tmp_path / "m.vxm", "--no-progress")
+    assert code == 0 and err.count("voxtool: warning:") == 1 and "2 rows for 3 scans" in err, err

@@ -7,6 +7,11 @@ as a single line and exit non-zero.
 from __future__ import annotations
 
 
+class VoxtoolWarning(UserWarning):
+    """Something a user should know that does not stop the work (a file beside the input that
+    could not be used); the command line prints it as one `voxtool: warning:` line."""
+
+
 class VoxtoolError(Exception):
     """Root of all errors voxtool raises on bad input or bad parameters."""
 

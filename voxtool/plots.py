@@ -39,11 +39,15 @@ def log_figure(stats: dict, series: dict[str, tuple[np.ndarray, np.ndarray]]):
     them per robot from its own first packet) and packet sizes, over seconds since the first packet."""
     fig = _figure(2)
     bw, sizes = fig.subplots(2, 1, sharex=True)
-    t0 = min(int(s.min()) for s, _ in series.values())
+    firsts = {robot: int(s.min()) for robot, (s, _) in series.items()}
+    t0 = min(firsts.values())
+    apart_days = (max(firsts.values()) - t0) / NS / 86400
     end = 0.0
     for i, (robot, (stamps, nbytes)) in enumerate(sorted(series.items())):
         row = stats["robots"][robot]
         first = int(stamps.min())
+        if apart_days > 1:  # clocks a day or more apart: each robot from its own first packet
+            t0 = first
         per_second = np.bincount((stamps - first) // NS, weights=nbytes)
         start = (first - t0) / NS + np.arange(len(per_second))
         edges = np.append(start, start[-1] + 1)
@@ -60,7 +64,8 @@ def log_figure(stats: dict, series: dict[str, tuple[np.ndarray, np.ndarray]]):
                  "(dashed: average over the log)", loc="left", fontsize=10)
     sizes.set_yscale("log")
     sizes.set_ylabel("packet size (bytes)")
-    sizes.set_xlabel("time since the first packet (s)")
+    sizes.set_xlabel("time since the first packet (s)" if apart_days <= 1 else
+                     f"time since each robot's first packet (s): their clocks are {apart_days:,.0f} days apart")
     sizes.set_xlim(0, end)
     sizes.legend(fontsize=8, loc="upper right")
     return fig

@@ -126,7 +126,7 @@ def street(n_scans: int = 30, seed: int = 0, lidar: Lidar | None = None) -> Scen
 
 def write_pcd_scans(scene: Scene, directory: str | Path) -> np.ndarray:
     """Write the scene as a PCD directory voxtool reads (sensor-frame points, VIEWPOINT = pose)
-    with poses.txt (TUM rows, the scan times: for --poses) and return the ground-truth dynamic
+    with poses.txt (TUM rows: the scan times, which voxtool reads from beside the scans) and return the ground-truth dynamic
     labels of every point, in read order."""
     from voxtool.io.export import pcd_header, pcd_rows
 

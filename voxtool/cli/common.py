@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.errors import VoxtoolError
+from voxtool.errors import VoxtoolError, VoxtoolWarning
 
 SAMPLE_DIR = Path(__file__).resolve().parents[1] / "data" / "sample"
 # voxtool.maps.BACKENDS imports the compiled kernels; the CLI keeps its names here so that
@@ -22,6 +22,17 @@ def handle_errors(func):
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
+        import warnings
+
+        shown = warnings.showwarning
+
+        def show(message, category, *rest, **kw):  # the library's warnings as voxtool's one-line form
+            if issubclass(category, VoxtoolWarning):
+                click.echo(f"voxtool: warning: {message}", err=True)
+            else:
+                shown(message, category, *rest, **kw)
+
+        warnings.showwarning = show
         try:
             from voxtool.jit import start
 
@@ -36,6 +47,8 @@ def handle_errors(func):
         except MemoryError:
             click.echo("voxtool: error: out of memory", err=True)
             sys.exit(1)
+        finally:
+            warnings.showwarning = shown
 
     return wrapper
 

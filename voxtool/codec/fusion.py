@@ -139,6 +139,7 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
         state_parts.append(p.states)
         rank_parts.append(np.full(keys.shape[0], rank, dtype=np.int64))
         rank += 1
+    _warn_clocks_apart(robots)
     for info in robots.values():
         seqs = sorted(info.pop("seqs"))
         missing = sorted(set(range(seqs[0], seqs[-1] + 1)) - set(seqs)) if seqs else []
@@ -155,6 +156,26 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
     codes, states = codes[last], states[last]
     known = states != UNKNOWN
     return FusionResult(codes[known], states[known], resolution, rank, robots)
+
+
+DAY_NS = 86_400 * 10**9
+
+
+def _warn_clocks_apart(robots: dict[str, dict]) -> None:
+    """Fusion by latest stamp means nothing between robots whose stamps are a day or more
+    apart (one log stamped in epoch time, another from 0): say so."""
+    import warnings
+
+    from voxtool.errors import VoxtoolWarning
+
+    if len(robots) < 2:
+        return
+    first = {robot: info["first_stamp_ns"] for robot, info in robots.items()}
+    early, late = min(first, key=first.get), max(first, key=first.get)
+    if first[late] - robots[early]["last_stamp_ns"] >= DAY_NS:
+        days = (first[late] - first[early]) / DAY_NS
+        warnings.warn(f"robot '{late}' is stamped {days:,.0f} days after robot '{early}': fusion by latest stamp lets "
+                      f"'{late}' win every voxel both saw; fuse logs stamped on one clock", VoxtoolWarning, stacklevel=3)
 
 
 def fused_leaves(result: FusionResult, sensor):

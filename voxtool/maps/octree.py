@@ -205,7 +205,7 @@ class OctreeMap:
         if stamp_ns <= last[0]:
             raise SourceError(f"{source or 'scan'}: scan {index} has time {stamp_ns * 1e-9:.9f} s, not after scan "
                               f"{last[1]}'s {last[0] * 1e-9:.9f} s; decay needs increasing scan times (a PCD directory "
-                              "takes them from --poses, e.g. its own poses.txt: docs/sources.md)")
+                              "takes them from the poses.txt beside its scans, or --poses: docs/sources.md)")
         self.tree.fade(2.0 ** (-(stamp_ns - last[0]) * 1e-9 / self.decay_half_life), FORGET_BELOW)
 
     def apply_updates(self, items: np.ndarray, mode: int = K.ADD, values: np.ndarray | None = None,

@@ -98,11 +98,40 @@ def _pose_rows(options: SourceOptions, n_scans: int) -> list | None:
     return rows
 
 
+BESIDE_POSES = "poses.txt"  # a PCD directory's own pose file: its times are the scans' times
+
+
+def _times_beside(path: Path, n_scans: int) -> list | None:
+    """Scan times (seconds) from the `poses.txt` beside a PCD directory's scans, when it gives
+    one time per scan; None (with a warning when the file is there but does not fit)."""
+    import warnings
+
+    from voxtool.errors import VoxtoolWarning
+    from voxtool.sources.poses import read_poses
+
+    file = path / BESIDE_POSES
+    if not file.is_file():
+        return None
+    try:
+        rows = read_poses(file)
+    except SourceError as err:
+        warnings.warn(f"{err}; the scans have no times (pass --poses to use a pose file)", VoxtoolWarning,
+                      stacklevel=2)
+        return None
+    if len(rows) != n_scans or any(stamp is None for stamp, _ in rows):
+        why = f"{len(rows)} rows for {n_scans} scans" if len(rows) != n_scans else "no times (KITTI rows)"
+        warnings.warn(f"{file}: {why}; the scans have no times", VoxtoolWarning, stacklevel=2)
+        return None
+    return [stamp for stamp, _ in rows]
+
+
 def _open_cloud_files(path: Path, options: SourceOptions, suffix: str) -> ScanStream:
     files = sorted(path.glob(f"*{suffix}"), key=_numeric_key) if path.is_dir() else [path]
     if not files:
         raise SourceError(f"{path}: directory holds no {suffix} files")
     rows = _pose_rows(options, len(files))
+    # without --poses, a PCD directory's poses come from VIEWPOINT and its times from poses.txt
+    times = _times_beside(path, len(files)) if rows is None and suffix == ".pcd" and path.is_dir() else None
     if suffix == ".ply" and rows is None:
         raise SourceError(f"{path}: PLY scans need a pose file (--poses)")
 
@@ -123,6 +152,8 @@ def _open_cloud_files(path: Path, options: SourceOptions, suffix: str) -> ScanSt
             if rows is not None:
                 stamp_s, pose = rows[i]
                 stamp = int(round(stamp_s * 1e9)) if stamp_s is not None else 0
+            elif times is not None:
+                stamp = int(round(times[i] * 1e9))
             if options.no_viewpoint:
                 pose = Pose(np.eye(3), pose.translation)
             yield make_scan(points, pose, i, stamp, str(f), f.stat().st_size, options, options.no_viewpoint)
