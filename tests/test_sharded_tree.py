@@ -84,3 +84,27 @@ def test_eight_equal_shards_in_different_parts_prune_above_them():
     for p in range(8):
         add_part(units, Leaves(whole.codes[p:p + 1], whole.depths[p:p + 1], whole.values[p:p + 1]), SHARD_DEPTH)
     assert join(units.arrays())[:2] == node_counts(collapse(whole)) == (1, SHARD_DEPTH - 1)
+
+
+def test_pruned_tree_counts_equal_the_pruned_trees_node_counts():
+    """The one-pass count (kernels.octree.pruned_tree_counts, what `stats` reports) against
+    pruning the leaves and counting the pruned tree's nodes, on random trees, for the log-odds
+    tree and for the max-likelihood tree at thresholds that split the leaf values differently."""
+    from voxtool.kernels.octree import pruned_tree_counts
+    from voxtool.maps.tree import max_likelihood
+
+    rng = np.random.default_rng(7)
+    for _ in range(60):
+        leaves = random_tree(rng)
+        got = pruned_tree_counts(leaves.codes, leaves.depths, leaves.values, np.float32(0.0), False)
+        assert tuple(int(n) for n in got) == node_counts(collapse(leaves))
+        for threshold in (0.0, 1.0, 3.0):
+            got = pruned_tree_counts(leaves.codes, leaves.depths, leaves.values, np.float32(threshold), True)
+            assert tuple(int(n) for n in got) == node_counts(max_likelihood(leaves, threshold))
+    # a single root leaf, eight equal children of the root, and no leaves
+    one = np.zeros(1, np.int64), np.zeros(1, np.uint8), np.ones(1, np.float32)
+    assert tuple(pruned_tree_counts(*one, np.float32(0), True)) == (1, 0)
+    eight = np.arange(8, dtype=np.int64) << 45, np.ones(8, np.uint8), np.full(8, 2.0, np.float32)
+    assert tuple(pruned_tree_counts(*eight, np.float32(0), False)) == (1, 0)
+    assert tuple(pruned_tree_counts(np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.float32),
+                                    np.float32(0), True)) == (0, 0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,8 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     for path in (output, share):
         if path is not None:
             check_writable(path)
+    t_start = time.perf_counter()
+    startup = process_age()
     stream = open_source(source, options)
     backend = make_backend(backend_name, params, sensor, **(backend_options or {}))
     writer = None
@@ -64,7 +67,9 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     finally:
         if writer is not None:
             writer.close(ok)
+    t_loop_end = time.perf_counter()
     result = backend_stats(backend)
+    t_stats = time.perf_counter() - t_loop_end
     result.update(report.to_dict())
     result["threads"] = backend.threads
     if per_scan:
@@ -75,8 +80,26 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     if output is not None:
         info = {"source": str(source), "source_kind": stream.kind, "source_options": options.__dict__,
                 **{k: result[k] for k in RECORDED_COUNTS}, "last_stamp_ns": report.last_stamp_ns or 0}
+        t0 = time.perf_counter()
         save_map(output, backend, info)
+        result["timings_s"]["write"] = round(time.perf_counter() - t0, 6)
+    # where the rest of the command's time goes (docs/design/octree.md): before this call
+    # (interpreter, imports, numba's set-up), opening the source and the map, the statistics
+    result["timings_s"].update(startup=round(startup, 6) if startup is not None else None,
+                               open=round(t_loop_end - t_start - report.time_total - report.time_jit, 6),
+                               stats=round(t_stats, 6))
     return result
+
+
+def process_age() -> float | None:
+    """Seconds since this process started (Linux /proc; None elsewhere): what the interpreter,
+    the imports and numba's set-up took before a command's work began."""
+    try:
+        ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return max(uptime - ticks / os.sysconf("SC_CLK_TCK"), 0.0)
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def encode_log(source, output, options: SourceOptions, params: MapParams, sensor: SensorModel,

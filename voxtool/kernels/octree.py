@@ -279,6 +279,86 @@ def inner_nodes(codes, depths):
 
 
 @njit(cache=True, nogil=True)
+def pruned_tree_counts(codes, depths, values, threshold, max_likelihood):
+    """(leaf nodes, inner nodes) of OctoMap's pruned tree of Morton-ordered, non-overlapping
+    leaves (max_likelihood: each value first made +1 / -1 by `threshold`, the tree a .bt holds),
+    in one pass and without copies: what node_counts(collapse(...)) gives. The nodes on the
+    path to the current leaf are open; a node closes when a leaf outside it arrives, and
+    becomes a leaf of its parent when its 8 children are leaves of one value."""
+    n_child = np.zeros(17, np.int64)
+    n_leaf = np.zeros(17, np.int64)  # leaf children not yet counted (the node may still prune)
+    same = np.zeros(17, np.bool_)  # every child so far is a leaf of value value[k]
+    value = np.zeros(17, np.float32)
+    prefix = np.full(17, -1, np.int64)  # the open node at depth k: codes >> 3 (16 - k) equal to this
+    open_depth = 0  # nodes 0..open_depth - 1 are open (the root once any leaf came)
+    leaves = np.int64(0)
+    inner = np.int64(0)
+    for i in range(codes.shape[0]):
+        d = np.int64(depths[i])
+        v = values[i]
+        if max_likelihood:
+            v = np.float32(1.0) if v > threshold else np.float32(-1.0)
+        if d == 0:  # the root is a leaf: the whole tree
+            return np.int64(1), np.int64(0)
+        c = codes[i]
+        # close the open nodes that do not hold this leaf, deepest first, into their parents
+        while open_depth > 1 and (c >> (3 * (16 - (open_depth - 1)))) != prefix[open_depth - 1]:
+            k = open_depth - 1
+            if n_child[k] == 8 and same[k]:
+                child_value = value[k]
+                is_leaf = True
+            else:
+                leaves += n_leaf[k]
+                inner += 1
+                is_leaf = False
+            open_depth -= 1
+            p = k - 1
+            n_child[p] += 1
+            if is_leaf:
+                n_leaf[p] += 1
+                same[p] = (same[p] and value[p] == child_value) if n_child[p] > 1 else True
+                value[p] = child_value if n_child[p] == 1 else value[p]
+            else:
+                same[p] = False
+        # open this leaf's ancestors below the deepest open node
+        for k in range(open_depth, d):
+            prefix[k] = c >> (3 * (16 - k))
+            n_child[k] = 0
+            n_leaf[k] = 0
+            same[k] = True
+        open_depth = max(open_depth, d)
+        p = d - 1
+        n_child[p] += 1
+        n_leaf[p] += 1
+        same[p] = (same[p] and value[p] == v) if n_child[p] > 1 else True
+        value[p] = v if n_child[p] == 1 else value[p]
+    # close every open node, the root last
+    while open_depth > 0:
+        k = open_depth - 1
+        if n_child[k] == 8 and same[k]:
+            child_value = value[k]
+            is_leaf = True
+        else:
+            leaves += n_leaf[k]
+            inner += 1
+            is_leaf = False
+        open_depth -= 1
+        if k == 0:
+            if is_leaf:
+                leaves += 1
+            break
+        p = k - 1
+        n_child[p] += 1
+        if is_leaf:
+            n_leaf[p] += 1
+            same[p] = (same[p] and value[p] == child_value) if n_child[p] > 1 else True
+            value[p] = child_value if n_child[p] == 1 else value[p]
+        else:
+            same[p] = False
+    return leaves, inner
+
+
+@njit(cache=True, nogil=True)
 def voxel_values(codes, prefixes, prefix_rows, directory, vals, shift, out_value, out_slot):
     """Log-odds at finest-level codes (NaN where no brick holds the voxel) and each code's brick
     slot (-1: none). Sorted codes find their brick once per brick; a shard's row is looked up
