@@ -9,6 +9,14 @@ and writes JSON.
 
     python benchmarks/bench_octree.py [--data ../shared/data] [--only kaist03] [--threads 1 2]
                                       [--repeat 2] [--out bench-results/octree.json]
+    python benchmarks/bench_octree.py --scale [--octomap-limit 60] [--out bench-results/octree_scale.json]
+
+--scale: how cost grows with the work. Per dataset, the whole command against the number of
+scans (a quarter, half, three quarters, all, at the reference resolution) and against the
+resolution (all scans, coarser and finer), with where its time goes (build --json's phases), ray
+steps, leaves and peak memory; OctoMap's insertion where its time, predicted from the row before
+by ray steps, stays under --octomap-limit seconds. A table, JSON and a plot (time against ray
+steps, memory against leaves).
 """
 
 from __future__ import annotations
@@ -25,17 +33,19 @@ from pathlib import Path
 import numpy as np
 
 DATASETS = [("kaist03", 0.2), ("quick_shack", 0.1), ("norlab", 0.2)]
+SCALE_RESOLUTIONS = {"kaist03": (0.4, 0.2, 0.1), "quick_shack": (0.2, 0.1, 0.05), "norlab": (0.4, 0.2, 0.1)}
 
 
-def octomap_worker(source: str, res: float, out: str) -> None:
-    """OctoMap's insertion of every scan (reading not timed); writes its .bt and a JSON."""
+def octomap_worker(source: str, res: float, out: str, stop: int = -1) -> None:
+    """OctoMap's insertion of every scan (reading not timed; before scan `stop` when >= 0);
+    writes its .bt and a JSON."""
     import pyoctomap
 
     from voxtool.sources import SourceOptions, open_source
 
     tree = pyoctomap.OcTree(res)
     insert = 0.0
-    for scan in open_source(source, SourceOptions()).scans:
+    for scan in open_source(source, SourceOptions(stop=stop if stop >= 0 else None)).scans:
         pts = scan.points.astype(np.float64)
         origin = scan.origin.astype(np.float64)
         t0 = time.perf_counter()
@@ -98,10 +108,16 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2, help="voxtool runs per thread count (the fastest counts)")
     ap.add_argument("--voxtool", default="voxtool", help="the voxtool command to time (split like a shell line)")
     ap.add_argument("--out", default="bench-results/octree.json")
-    ap.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--scale", action="store_true", help="time and memory against scans and resolution")
+    ap.add_argument("--octomap-limit", type=float, default=60.0,
+                    help="--scale: run OctoMap where its predicted insertion time is below this (s)")
+    ap.add_argument("--worker", nargs=4, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        octomap_worker(args.worker[0], float(args.worker[1]), args.worker[2])
+        octomap_worker(args.worker[0], float(args.worker[1]), args.worker[2], int(args.worker[3]))
+        return
+    if args.scale:
+        scale(args)
         return
     out_dir = Path(args.out).parent
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -114,7 +130,7 @@ def main() -> None:
             print(f"skip {name}: {source} absent", file=sys.stderr)
             continue
         om_bt = out_dir / f"{name}_octomap.bt"
-        om_wall, om_rss, _ = run_timed([sys.executable, __file__, "--worker", str(source), str(res), str(om_bt)])
+        om_wall, om_rss, _ = run_timed([sys.executable, __file__, "--worker", str(source), str(res), str(om_bt), "-1"])
         om = json.loads(Path(str(om_bt) + ".json").read_text())
         want_occ, want_free = bt_voxels(om_bt)
         for threads in args.threads:
@@ -151,6 +167,97 @@ def main() -> None:
     Path(args.out).write_text(json.dumps({"machine": os.uname().nodename, "cpus": os.cpu_count(), "rows": rows},
                                          indent=2))
     print(f"wrote {args.out}")
+
+
+def scale(args) -> None:
+    out_dir = Path(args.out).parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name, ref in DATASETS:
+        if args.only and name not in args.only:
+            continue
+        source = Path(args.data) / name / "pcd"
+        if not source.is_dir():
+            print(f"skip {name}: {source} absent", file=sys.stderr)
+            continue
+        n = len(list(source.glob("*.pcd")))
+        configs = [("scans", ref, max(1, round(n * q / 4))) for q in (1, 2, 3, 4)]
+        configs += [("resolution", res, n) for res in SCALE_RESOLUTIONS[name] if res != ref]
+        last_om = None  # (insert seconds, ray steps) of OctoMap's last run: predicts the next
+        for axis, res, stop in configs:
+            vxm = out_dir / f"{name}_scale.vxm"
+            best = None
+            for _ in range(args.repeat):
+                wall, rss, text = run_timed([*shlex.split(args.voxtool), "build", str(source), "--resolution", str(res),
+                                             "--stop", str(stop), "-o", str(vxm), "--json", "--no-progress"])
+                if best is None or wall < best[0]:
+                    best = (wall, rss, json.loads(text))
+            wall, rss, built = best
+            t = built["timings_s"]
+            steps = built["ray_steps"]
+            row = {"dataset": name, "axis": axis, "resolution": res, "scans": built["scans"], "ray_steps": steps,
+                   "voxel_updates": built["voxel_updates"], "leaves": built["octree_leaf_nodes"],
+                   "command_s": round(wall, 3), "ns_per_step": round(wall / steps * 1e9, 2),
+                   "loop_ns_per_step": round(t["total"] / steps * 1e9, 2), "peak_rss_mib": round(rss / 2**20, 1),
+                   "bytes_per_leaf": round(rss / max(built["octree_leaf_nodes"], 1), 1),
+                   **{f"{k}_s": t[k] for k in ("startup", "open", "jit", "total", "stats", "write")},
+                   "octomap_insert_s": None, "octomap_peak_rss_mib": None, "speedup": None}
+            row["exit_and_rest_s"] = round(wall - sum(t[k] or 0 for k in ("startup", "open", "jit", "total", "stats",
+                                                                            "write")), 3)
+            predicted = last_om[0] * steps / last_om[1] if last_om else 0.0
+            if predicted <= args.octomap_limit:
+                om_bt = out_dir / f"{name}_scale_octomap.bt"
+                _, om_rss, _ = run_timed([sys.executable, __file__, "--worker", str(source), str(res), str(om_bt),
+                                          str(stop)])
+                om = json.loads(Path(str(om_bt) + ".json").read_text())
+                last_om = (om["insert_s"], steps)
+                row.update(octomap_insert_s=round(om["insert_s"], 3), octomap_peak_rss_mib=round(om_rss / 2**20, 1),
+                           speedup=round(om["insert_s"] / wall, 2))
+            rows.append(row)
+            print(json.dumps(row), file=sys.stderr)
+    cols = ["dataset", "resolution", "scans", "ray_steps", "leaves", "command_s", "ns_per_step", "loop_ns_per_step",
+            "startup_s", "total_s", "stats_s", "write_s", "peak_rss_mib", "bytes_per_leaf", "octomap_insert_s",
+            "octomap_peak_rss_mib", "speedup"]
+    print(" | ".join(cols))
+    for r in rows:
+        print(" | ".join(str(r[c]) for c in cols))
+    out = Path(args.out if args.out != "bench-results/octree.json" else "bench-results/octree_scale.json")
+    out.write_text(json.dumps({"machine": os.uname().nodename, "cpus": os.cpu_count(), "rows": rows}, indent=2))
+    plot_scale(rows, out.with_suffix(".png"))
+    print(f"wrote {out} and {out.with_suffix('.png')}")
+
+
+def plot_scale(rows: list[dict], path: Path) -> None:
+    """Whole-command and scan-loop time against ray steps, peak memory against leaves, per dataset."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (tim, mem) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for i, name in enumerate(dict.fromkeys(r["dataset"] for r in rows)):
+        mine = sorted((r for r in rows if r["dataset"] == name), key=lambda r: r["ray_steps"])
+        colour = f"C{i}"
+        steps = [r["ray_steps"] for r in mine]
+        tim.plot(steps, [r["command_s"] for r in mine], "o-", color=colour, label=f"{name}: whole command")
+        tim.plot(steps, [r["total_s"] for r in mine], "s--", color=colour, label=f"{name}: scan loop")
+        om = [(r["ray_steps"], r["octomap_insert_s"]) for r in mine if r["octomap_insert_s"]]
+        if om:
+            tim.plot(*zip(*om), "x:", color=colour, label=f"{name}: OctoMap insertion")
+        by_leaves = sorted(mine, key=lambda r: r["leaves"])
+        mem.plot([r["leaves"] for r in by_leaves], [r["peak_rss_mib"] for r in by_leaves], "o-", color=colour,
+                 label=name)
+    for ax, xlabel, ylabel in ((tim, "ray steps", "seconds"), (mem, "leaves of the map", "peak RSS (MiB)")):
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    tim.set_title("time against the work (scans and resolution)", fontsize=10)
+    mem.set_title("memory against the map", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 if __name__ == "__main__":
