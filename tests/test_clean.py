@@ -42,11 +42,12 @@ def test_accuracy_refuses_labels_of_another_length():
 
 # -- kernels against brute force --------------------------------------------------------------
 
-def test_void_evidence_is_each_ray_up_to_the_first_hit_segment_away_from_every_hit():
+@pytest.mark.parametrize("sensor_noise", [0.6])  # a ball of 3 voxels
+def test_void_evidence_is_each_ray_up_to_the_first_hit_segment_away_from_every_hit(sensor_noise):
     """Brute force, ray by ray: OctoMap's voxels of the ray (one-ray scans, in the order the ray
     enters them: by the centre's distance along it) up to the first voxel that the last d_s
     metres of any ray of the scan pass through (sampled as documented: 4 samples a voxel edge),
-    less those within d_s (3 voxels) of any voxel the scan hit."""
+    less those within d_s (ceil(d_s / 0.25) voxels) of any voxel the scan hit."""
     from voxtool.keys import coords_to_keys, morton_decode, morton_encode
     from voxtool.maps.octree import scan_updates
     from voxtool.sources.scan import Scan
@@ -54,7 +55,8 @@ def test_void_evidence_is_each_ray_up_to_the_first_hit_segment_away_from_every_h
     scan = next(iter(street(1, lidar=Lidar(beams=8, columns=90)).scans()))
     points, origin = scan[0], scan[1]
     origin = origin.astype(np.float32)
-    params = CleanParams(resolution=0.25, sensor_noise=0.6)
+    params = CleanParams(resolution=0.25, sensor_noise=sensor_noise)
+    radius = int(np.ceil(sensor_noise / 0.25))
     vm = VoidMap(params, threads=1)
     got = vm.prepare(Scan(points, origin)).packed
     assert not (got & 1).any()  # void evidence only: no endpoints
@@ -63,9 +65,9 @@ def test_void_evidence_is_each_ray_up_to_the_first_hit_segment_away_from_every_h
     o = origin.astype(np.float64)
     for p in points.astype(np.float64):
         dist = np.linalg.norm(p - o)
-        seg = min(0.6, dist)
+        seg = min(sensor_noise, dist)
         n = int(np.ceil(seg / 0.25 * 4))
-        f = np.arange(n + 1) * seg / (n * dist)
+        f = seg * np.arange(n + 1) * (1.0 / (n * dist))
         samples = p[None, :] - (p - o)[None, :] * f[:, None]
         segment.update(morton_encode(coords_to_keys(samples, 0.25)).tolist())
     hit_keys = np.unique(coords_to_keys(points, 0.25).astype(np.int64), axis=0)
@@ -85,11 +87,33 @@ def test_void_evidence_is_each_ray_up_to_the_first_hit_segment_away_from_every_h
     near = np.zeros(walked.shape[0], bool)
     for lo in range(0, hit_keys.shape[0], 256):  # squared key distance to every hit, a block at a time
         d2 = ((wk[:, None, :] - hit_keys[None, lo:lo + 256, :]) ** 2).sum(axis=2)
-        near |= (d2 <= 9).any(axis=1)
+        near |= (d2 <= radius * radius).any(axis=1)
     all_free = scan_updates(Scan(points, origin), vm.params)[0]
     assert 0 < walked.shape[0] < np.count_nonzero(all_free & 1 == 0)  # some rays stopped early
     assert near.any() and (~near).any()
     np.testing.assert_array_equal(got >> 1, walked[~near])
+
+
+@pytest.mark.parametrize("radius", [1, 3, 8])
+def test_balls_marked_by_whole_words_equal_balls_marked_bit_by_bit(radius):
+    """near_hits_table's ball table (ball_brick_masks: a ball as words of the bricks around a
+    voxel's own) marks exactly the voxels the per-offset loop marks, at the key range's edges too."""
+    from voxtool.kernels.clean import NO_BALL_TABLE, ball_brick_masks, ball_offsets, near_hits_table
+    from voxtool.keys import coords_to_keys, morton_encode, unique_codes
+
+    rng = np.random.default_rng(radius)
+    points = np.concatenate([rng.normal(0, 3, (3000, 3)), rng.uniform(-0.15, 0.15, (200, 3)) - 3276.6,
+                             rng.uniform(-0.15, 0.15, (200, 3)) + 3276.6]).astype(np.float32)
+    hits = unique_codes(morton_encode(coords_to_keys(points, 0.1)))
+    offsets = ball_offsets(radius)
+    tables = []
+    for ball in (ball_brick_masks(offsets), NO_BALL_TABLE):
+        keys, bits = np.full(1 << 16, -1, np.int64), np.zeros((1 << 16, 16), np.int64)
+        assert near_hits_table(points, hits, np.zeros(3, np.float32), 0.1, 0.3, offsets, *ball, keys, bits)
+        used = keys >= 0
+        tables.append(dict(zip(keys[used].tolist(), map(tuple, bits[used].tolist()))))
+    assert tables[0] == tables[1]
+    assert sum(bin(w & (2**64 - 1)).count("1") for row in tables[0].values() for w in row[8:]) > hits.shape[0]
 
 
 def test_a_point_is_dynamic_when_its_voxel_and_its_cube_are_void():

@@ -56,14 +56,16 @@ class VoidMap:
     name = "void"
 
     def __init__(self, params: CleanParams, threads: int = 0) -> None:
-        from voxtool.kernels.clean import ball_offsets
+        from voxtool.kernels.clean import BALL_TABLE_RADIUS, NO_BALL_TABLE, ball_brick_masks, ball_offsets
 
         self.clean = params
         self.params = MapParams(resolution=params.resolution, max_range=params.max_range)
         self.sensor = SensorModel()
         self.threads = resolve_threads(threads)
         self.tree = ShardedOctree(DEFAULT_SHARD_DEPTH, self.threads)
-        self.near_hit = ball_offsets(int(np.ceil(params.sensor_noise / params.resolution - 1e-9)))
+        radius = int(np.ceil(params.sensor_noise / params.resolution - 1e-9))
+        self.near_hit = ball_offsets(radius)
+        self.ball_table = ball_brick_masks(self.near_hit) if radius <= BALL_TABLE_RADIUS else NO_BALL_TABLE
 
     def warm_up(self) -> None:
         from voxtool.maps.octree import warm_up_kernels
@@ -86,15 +88,17 @@ class VoidMap:
         if self.params.max_range >= 0:  # a ray cut at max range hits nothing
             reach = np.linalg.norm(points.astype(np.float64) - scan.origin, axis=1)
             points = points[reach <= self.params.max_range]
+        coords_to_keys(scan.origin[None, :], self.params.resolution, what=f"{scan.source}: sensor origin of scan")
         hits = unique_codes(morton_encode(coords_to_keys(points, self.params.resolution, what=f"{scan.source}: point")))
         size = 1 << max(10, int(hits.shape[0]).bit_length() + 1)  # bricks near hits: ~hits / 2
         while True:
             table = (np.full(size, -1, dtype=np.int64), np.zeros((size, 16), dtype=np.int64))
             if near_hits_table(points, hits, scan.origin, self.params.resolution, self.clean.sensor_noise,
-                               self.near_hit, *table):
+                               self.near_hit, *self.ball_table, *table):
                 break
             size *= 2
-        packed, steps, _, _ = scan_bricks_updates(scan, self.params, self.threads, near_hits=table)
+        packed, steps, _, _ = scan_bricks_updates(scan, self.params, self.threads, near_hits=table,
+                                                  in_range=points is scan.points)  # checked above
         return PreparedScan(packed, steps, time.perf_counter() - t0, int(scan.points.shape[0]))
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:

@@ -111,15 +111,18 @@ def bricks_to_updates(bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray, 
     return out, distinct, starts
 
 
-def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1, group_of=None, near_hits=None) -> tuple:
+def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1, group_of=None, near_hits=None,
+                        in_range: bool = False) -> tuple:
     """(Morton-sorted code << 1 | occupied updates of one scan, its DDA step count, rays merged
     into others (0 unless params.merge_rays), (distinct brick codes, their update starts)).
-    group_of: sorted by group first (bricks_to_updates); near_hits: see _trace_part."""
+    group_of: sorted by group first (bricks_to_updates); near_hits: see _trace_part; in_range:
+    the caller has checked that the points and the origin lie in key range."""
     n = scan.points.shape[0]
     if n == 0:
         return np.empty(0, dtype=np.int64), 0, 0, None
-    coords_to_keys(scan.origin[None, :], params.resolution, what=f"{scan.source}: sensor origin of scan")
-    coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
+    if not in_range:
+        coords_to_keys(scan.origin[None, :], params.resolution, what=f"{scan.source}: sensor origin of scan")
+        coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
     merged = 0
     if params.merge_rays:
         scan = merge_rays(scan, params)
