@@ -13,13 +13,20 @@ result per dataset (bench-results/clean_<name>.png).
 
 from __future__ import annotations
 
-import argparse
-import json
-import tempfile
-import time
-from pathlib import Path
+import os
 
-import numpy as np
+# one BLAS thread, as the voxtool command sets it (before numpy loads): OpenBLAS threads left
+# spinning after a scan's transform would take cores from either tool
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 REAL = [("kaist03", 80.0), ("quick_shack", None), ("norlab", 60.0)]  # name, picture extent (m)
 
