@@ -12,7 +12,6 @@ from conftest import cli
 
 from voxtool.clean import CleanParams, VoidMap, accuracy, clean_stream, cube_offsets, dynamic_points
 from voxtool.errors import ParameterError
-from voxtool.maps.base import PreparedScan
 from voxtool.sources import open_source
 from voxtool.synthetic import Box, Lidar, Scene, street, write_pcd_scans
 
@@ -42,6 +41,17 @@ def test_accuracy_refuses_labels_of_another_length():
 
 # -- kernels against brute force --------------------------------------------------------------
 
+def evidence_codes(vm, scan):
+    """The voxels a scan's rays make void (the void map's brick masks expanded), sorted."""
+    codes = []
+    for bricks, masks, occ, _ in vm.evidence(vm.prepare(scan)):
+        assert not occ.any()  # void evidence only: no endpoints
+        bits = np.unpackbits(masks.view(np.uint8), axis=1, bitorder="little").astype(bool)  # (bricks, 512)
+        rows, inner = np.nonzero(bits)
+        codes.append(bricks[rows] << 9 | inner)
+    return np.unique(np.concatenate(codes))
+
+
 @pytest.mark.parametrize("sensor_noise", [0.6])  # a ball of 3 voxels
 def test_void_evidence_is_each_ray_up_to_the_first_hit_segment_away_from_every_hit(sensor_noise):
     """Brute force, ray by ray: OctoMap's voxels of the ray (one-ray scans, in the order the ray
@@ -58,8 +68,7 @@ def test_void_evidence_is_each_ray_up_to_the_first_hit_segment_away_from_every_h
     params = CleanParams(resolution=0.25, sensor_noise=sensor_noise)
     radius = int(np.ceil(sensor_noise / 0.25))
     vm = VoidMap(params, threads=1)
-    got = vm.prepare(Scan(points, origin)).packed
-    assert not (got & 1).any()  # void evidence only: no endpoints
+    got = evidence_codes(vm, Scan(points, origin))
 
     segment = set()
     o = origin.astype(np.float64)
@@ -91,7 +100,7 @@ def test_void_evidence_is_each_ray_up_to_the_first_hit_segment_away_from_every_h
     all_free = scan_updates(Scan(points, origin), vm.params)[0]
     assert 0 < walked.shape[0] < np.count_nonzero(all_free & 1 == 0)  # some rays stopped early
     assert near.any() and (~near).any()
-    np.testing.assert_array_equal(got >> 1, walked[~near])
+    np.testing.assert_array_equal(got, walked[~near])
 
 
 @pytest.mark.parametrize("radius", [1, 3, 8])
@@ -123,7 +132,7 @@ def test_a_point_is_dynamic_when_its_voxel_and_its_cube_are_void():
     void = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3)  # a 7^3 void block
     void = void[~((void[:, 0] == 2) & (void[:, 1] == 2) & (void[:, 2] == 2))]  # with one hole
     codes = np.sort(morton_encode(coords_to_keys(void + 0.5, 1.0)))
-    vm.apply(PreparedScan(codes << 1, 0, 0.0))
+    vm.add_void(codes)
     rng = np.random.default_rng(1)
     points = rng.uniform(-5, 5, (5000, 3)).astype(np.float32)
     got = dynamic_points(vm, points)

@@ -22,10 +22,8 @@ import numpy as np
 
 from voxtool.config import MapParams, SensorModel
 from voxtool.errors import ParameterError
-from voxtool.kernels import octree as K
 from voxtool.maps.base import IntegrateTiming, PreparedScan
-from voxtool.maps.shards import DEFAULT_SHARD_DEPTH, ShardedOctree
-from voxtool.parallel import resolve_threads
+from voxtool.parallel import resolve_threads, run_parts
 from voxtool.sources import ScanStream, SourceOptions, open_source
 from voxtool.sources.scan import Scan
 
@@ -50,8 +48,11 @@ class CleanParams:
 
 
 class VoidMap:
-    """The void octree, shaped as a map backend so voxtool.pipeline.build streams scans into it
-    (reading and ray casting of the next scan overlap the update of this one)."""
+    """The void map: a bit per voxel that some ray crossed, in a hash table of 8 x 8 x 8-voxel
+    bricks (a brick's 512 bits as 8 words, Morton order inside), shaped as a map backend so
+    voxtool.pipeline.build streams scans into it. A scan's map-independent part (reading, keying
+    its hits, marking the voxels near them) runs on the read-ahead thread while the previous
+    scan's rays are cast and ORed into the table on the calling thread's pool."""
 
     name = "void"
 
@@ -62,26 +63,26 @@ class VoidMap:
         self.params = MapParams(resolution=params.resolution, max_range=params.max_range)
         self.sensor = SensorModel()
         self.threads = resolve_threads(threads)
-        self.tree = ShardedOctree(DEFAULT_SHARD_DEPTH, self.threads)
+        self.keys = np.full(1 << 12, -1, dtype=np.int64)  # brick codes, -1 empty (a power of two)
+        self.bits = np.zeros((1 << 12, 8), dtype=np.int64)
+        self.bricks = 0
         radius = int(np.ceil(params.sensor_noise / params.resolution - 1e-9))
         self.near_hit = ball_offsets(radius)
         self.ball_table = ball_brick_masks(self.near_hit) if radius <= BALL_TABLE_RADIUS else NO_BALL_TABLE
 
     def warm_up(self) -> None:
-        from voxtool.maps.octree import warm_up_kernels
-
-        warm_up_kernels()
-        self.prepare(Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
+        self.apply(self.prepare(Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32))))
         dynamic_points(self, np.zeros((1, 3), dtype=np.float32))
+        self.keys[:] = -1
+        self.bits[:] = 0
+        self.bricks = 0
 
     def prepare(self, scan: Scan) -> PreparedScan:
-        """The scan's void evidence: the free voxels of its rays, each ray stopped at the last
-        sensor_noise metres of any ray of the scan and silent within sensor_noise of any of its
-        hits (kernels.clean.near_hits_table; map-independent: runs on the read-ahead thread
-        while the last scan updates the void map)."""
+        """What a scan's rays respect (kernels.clean.near_hits_table): each ray stops at the last
+        sensor_noise metres of any ray of the scan and is silent within sensor_noise of any of
+        its hits. Map-independent: runs on the read-ahead thread."""
         from voxtool.kernels.clean import near_hits_table
         from voxtool.keys import coords_to_keys, morton_encode, unique_codes
-        from voxtool.maps.octree import scan_bricks_updates
 
         t0 = time.perf_counter()
         points = scan.points
@@ -89,7 +90,8 @@ class VoidMap:
             reach = np.linalg.norm(points.astype(np.float64) - scan.origin, axis=1)
             points = points[reach <= self.params.max_range]
         coords_to_keys(scan.origin[None, :], self.params.resolution, what=f"{scan.source}: sensor origin of scan")
-        hits = unique_codes(morton_encode(coords_to_keys(points, self.params.resolution, what=f"{scan.source}: point")))
+        coords_to_keys(scan.points, self.params.resolution, what=f"{scan.source}: point")  # the rays' check
+        hits = unique_codes(morton_encode(coords_to_keys(points, self.params.resolution)))
         size = 1 << max(10, int(hits.shape[0]).bit_length() + 1)  # bricks near hits: ~hits / 2
         while True:
             table = (np.full(size, -1, dtype=np.int64), np.zeros((size, 16), dtype=np.int64))
@@ -97,24 +99,57 @@ class VoidMap:
                                self.near_hit, *self.ball_table, *table):
                 break
             size *= 2
-        packed, steps, _, _ = scan_bricks_updates(scan, self.params, self.threads, near_hits=table,
-                                                  in_range=points is scan.points)  # checked above
-        return PreparedScan(packed, steps, time.perf_counter() - t0, int(scan.points.shape[0]))
+        return PreparedScan(np.empty(0, dtype=np.int64), 0, time.perf_counter() - t0, int(scan.points.shape[0]),
+                            scan=scan, near_hits=table)
+
+    def evidence(self, prepared: PreparedScan) -> list:
+        """The scan's void evidence: per run of rays, (brick codes, their 512-bit masks of the
+        voxels the rays crossed, DDA steps), cast on the map's threads."""
+        from voxtool.maps.octree import _trace_part, ray_parts
+
+        scan = prepared.scan
+        return run_parts(self.threads, lambda run: _trace_part(scan, self.params, *run, prepared.near_hits),
+                         ray_parts(scan, self.threads))
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         t0 = time.perf_counter()
-        # void = -1, once and for good: a miss of -1 clamped to [-1, 0]
-        self.tree.apply(prepared.packed, K.ADD, hit=0.0, miss=-1.0, cmin=-1.0, cmax=0.0)
-        return IntegrateTiming(raycast=prepared.seconds, update=time.perf_counter() - t0,
-                               voxel_updates=int(prepared.packed.shape[0]), ray_steps=prepared.steps,
-                               rays=prepared.rays)
+        parts = self.evidence(prepared) if prepared.scan.points.shape[0] else []
+        t1 = time.perf_counter()
+        voxels = sum(self.add_bricks(bricks, masks) for bricks, masks, _, _ in parts)
+        return IntegrateTiming(raycast=prepared.seconds + (t1 - t0), update=time.perf_counter() - t1,
+                               voxel_updates=voxels, ray_steps=sum(p[3] for p in parts), rays=prepared.rays)
+
+    def add_bricks(self, bricks: np.ndarray, masks: np.ndarray) -> int:
+        """Make the voxels of 512-bit brick masks void; returns the bits the masks hold."""
+        from voxtool.kernels.clean import or_bricks, rehash_bricks
+
+        while (self.bricks + bricks.shape[0]) * 2 > self.keys.shape[0]:  # at most half full
+            size = 2 * self.keys.shape[0]
+            keys, bits = np.full(size, -1, dtype=np.int64), np.zeros((size, 8), dtype=np.int64)
+            rehash_bricks(self.keys, self.bits, keys, bits)
+            self.keys, self.bits = keys, bits
+        added, voxels = or_bricks(self.keys, self.bits, bricks, masks)
+        self.bricks += added
+        return voxels
+
+    def add_void(self, codes: np.ndarray) -> None:
+        """Make voxels (finest-level Morton codes) void."""
+        codes = np.unique(np.asarray(codes, dtype=np.int64))
+        bricks, brick_of = np.unique(codes >> 9, return_inverse=True)
+        masks = np.zeros((bricks.shape[0], 8), dtype=np.int64)
+        np.bitwise_or.at(masks, (brick_of, (codes & 511) >> 6), np.left_shift(np.int64(1), codes & 63))
+        self.add_bricks(bricks, masks)
 
     def void(self, codes: np.ndarray) -> np.ndarray:
-        """Whether each finest-level voxel is void."""
-        return self.tree.values(codes) < -0.5  # NaN (never seen) compares False
+        """Whether each finest-level voxel (Morton code >= 0) is void."""
+        from voxtool.kernels.clean import bricks_hold
+
+        out = np.empty(codes.shape[0], dtype=bool)
+        bricks_hold(self.keys, self.bits, codes, out)
+        return out
 
     def used_bytes(self) -> int:
-        return self.tree.used_bytes()
+        return int(self.keys.nbytes + self.bits.nbytes)
 
 
 def cube_offsets(radius: int) -> np.ndarray:

@@ -216,3 +216,50 @@ def neighbour_codes(codes, offsets, out):
     for i in range(codes.shape[0]):
         for j in range(offsets.shape[0]):
             out[i, j] = _moved(codes[i], offsets[j, 0], offsets[j, 1], offsets[j, 2])
+
+
+@njit(cache=True, nogil=True)
+def or_bricks(keys, bits, bricks, masks):
+    """OR 512-bit brick masks (Morton order within the brick) into a table of bricks (`keys`:
+    brick codes, -1 empty; `bits`: (len(keys), 8) int64). Returns (bricks added, bits in the
+    masks), or (-1, 0) when the table filled up (the caller grows it and calls again)."""
+    mask = keys.shape[0] - 1
+    added = 0
+    voxels = 0
+    for i in range(bricks.shape[0]):
+        row, new = _brick_row(keys, bricks[i], mask, True)
+        if row < 0:
+            return -1, 0
+        added += new
+        for w in range(8):
+            x = masks[i, w]
+            bits[row, w] |= x
+            while x != 0:  # Kernighan's count of the set bits
+                x &= x - 1
+                voxels += 1
+    return added, voxels
+
+
+@njit(cache=True, nogil=True)
+def rehash_bricks(keys, bits, new_keys, new_bits):
+    """The table's bricks moved into a larger (empty) one."""
+    mask = new_keys.shape[0] - 1
+    for i in range(keys.shape[0]):
+        if keys[i] != -1:
+            row, _ = _brick_row(new_keys, keys[i], mask, True)
+            new_bits[row] = bits[i]
+
+
+@njit(cache=True, nogil=True)
+def bricks_hold(keys, bits, codes, out):
+    """out[i]: whether the table's bit of finest-level voxel codes[i] is set (codes >= 0;
+    sorted codes find each brick once)."""
+    mask = keys.shape[0] - 1
+    last = np.int64(-1)
+    row = np.int64(-1)
+    for i in range(codes.shape[0]):
+        code = codes[i]
+        if code >> 9 != last:
+            last = code >> 9
+            row, _ = _brick_row(keys, last, mask, False)
+        out[i] = row >= 0 and ((bits[row, (code & 511) >> 6] >> (code & 63)) & 1) == 1

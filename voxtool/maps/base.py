@@ -64,6 +64,7 @@ class PreparedScan:
     index: int = -1  # the scan's index (parameter schedules), -1 when not from a scan stream
     brick_runs: tuple | None = None  # (distinct 8^3-brick codes, where each one's updates start) in packed
     source: str = ""  # where the scan came from (for messages)
+    near_hits: tuple | None = None  # clean's rays' stop and skip table (kernels.clean.near_hits_table)
 
 
 class MapBackend(Protocol):
