@@ -5,8 +5,8 @@ from every point of that scan (range noise and porous surfaces such as foliage, 
 between the hits of one scan, give no void evidence), each ray stopping where it comes within
 `sensor_noise` of the end of any ray of the scan (DUFOMap's inflated hits). A point is dynamic
 when its voxel and every voxel within `pose_error` voxels of it are void: something else was seen through that space at another
-time. Everything else is static. The void map is an octree of the exact OctoMap ray casting
-(voxtool.maps.octree) holding -1 for void voxels; docs/cleaning.md says how to tune it and
+time. Everything else is static. The void map holds a bit per voxel that the exact OctoMap ray
+casting (voxtool.maps.octree's caster) crossed; docs/cleaning.md says how to tune it and
 docs/design/clean.md why it was chosen and what it was measured against.
 """
 
