@@ -71,8 +71,11 @@ class VoidMap:
         self.ball_table = ball_brick_masks(self.near_hit) if radius <= BALL_TABLE_RADIUS else NO_BALL_TABLE
 
     def warm_up(self) -> None:
+        from voxtool.kernels.clean import rehash_bricks
+
         self.apply(self.prepare(Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32))))
         dynamic_points(self, np.zeros((1, 3), dtype=np.float32))
+        rehash_bricks(self.keys, self.bits, self.keys.copy(), self.bits.copy())  # the table's growth
         self.keys[:] = -1
         self.bits[:] = 0
         self.bricks = 0
