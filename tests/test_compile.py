@@ -42,3 +42,21 @@ def test_first_runs_after_compile_compile_nothing(tmp_path):
         compiled = [line for line in log.splitlines() if "data saved" in line]
         assert not compiled, (args[0], compiled[:3])
         assert "data loaded" in log, args[0]  # numba's log is there: the check above can fail
+
+
+def test_an_interrupted_compile_exits_130(tmp_path):
+    """Ctrl-C during `voxtool compile` (a fresh cache, so it is still compiling) is one line and
+    exit 130, as for every command; not a 'step failed' error."""
+    import signal
+    import time
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    proc = subprocess.Popen([sys.executable, "-m", "voxtool.cli", "compile", "--no-progress"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 60
+    while time.time() < deadline and not any((tmp_path / "cache").rglob("*.nbi")):
+        time.sleep(0.05)  # the first kernel is in the cache: compiling has begun
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines() == ["voxtool: interrupted; no output written"]

@@ -70,6 +70,8 @@ def compile_ahead(progress: bool | None = None) -> dict:
                     code = 0
                 except SystemExit as stop:
                     code = stop.code or 0
+            if code == 130:  # Ctrl-C inside a step: the whole command was interrupted
+                raise KeyboardInterrupt
             if code != 0:
                 line = err.getvalue().strip().splitlines()[-1:] or [f"exit {code}"]
                 raise VoxtoolError(f"compiling: 'voxtool {name}' on the sample failed: {line[0]}")
