@@ -93,8 +93,10 @@ class VoidMap:
             reach = np.linalg.norm(points.astype(np.float64) - scan.origin, axis=1)
             points = points[reach <= self.params.max_range]
         coords_to_keys(scan.origin[None, :], self.params.resolution, what=f"{scan.source}: sensor origin of scan")
-        coords_to_keys(scan.points, self.params.resolution, what=f"{scan.source}: point")  # the rays' check
-        hits = unique_codes(morton_encode(coords_to_keys(points, self.params.resolution)))
+        keys = coords_to_keys(scan.points, self.params.resolution, what=f"{scan.source}: point")  # every ray's end
+        if points is not scan.points:
+            keys = coords_to_keys(points, self.params.resolution)
+        hits = unique_codes(morton_encode(keys))
         size = 1 << max(10, int(hits.shape[0]).bit_length() + 1)  # bricks near hits: ~hits / 2
         while True:
             table = (np.full(size, -1, dtype=np.int64), np.zeros((size, 16), dtype=np.int64))
