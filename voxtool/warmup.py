@@ -5,7 +5,7 @@ numba compiles a kernel the first time it is called and keeps the machine code i
 compilation once per install: 3.4 s of a first `build`, 2.2 s of a first `encode --codec cm`.
 The cache is keyed by each source file's modification time, so it cannot ship inside the
 package (a new clone or install has new times). What can be done is to fill it once, at
-install: `compile_ahead` runs every command on one scan of the shipped sample, in this process,
+install: `compile_ahead` runs every command on two scans of the shipped sample, in this process,
 so each kernel is compiled with exactly the argument types the commands give it.
 """
 
