@@ -201,6 +201,9 @@ def scale(args) -> None:
                    "loop_ns_per_step": round(t["total"] / steps * 1e9, 2), "peak_rss_mib": round(rss / 2**20, 1),
                    "bytes_per_leaf": round(rss / max(built["octree_leaf_nodes"], 1), 1),
                    **{f"{k}_s": t[k] for k in ("startup", "open", "jit", "total", "stats", "write")},
+                   # the loop's phases, each summed over the scans (they overlap: read and cast
+                   # scan i+1 on a helper thread while scan i updates the map)
+                   **{f"loop_{k}_s": t[k] for k in ("read", "raycast", "update")},
                    "octomap_insert_s": None, "octomap_peak_rss_mib": None, "speedup": None}
             row["exit_and_rest_s"] = round(wall - sum(t[k] or 0 for k in ("startup", "open", "jit", "total", "stats",
                                                                             "write")), 3)
@@ -216,8 +219,8 @@ def scale(args) -> None:
             rows.append(row)
             print(json.dumps(row), file=sys.stderr)
     cols = ["dataset", "resolution", "scans", "ray_steps", "leaves", "command_s", "ns_per_step", "loop_ns_per_step",
-            "startup_s", "total_s", "stats_s", "write_s", "peak_rss_mib", "bytes_per_leaf", "octomap_insert_s",
-            "octomap_peak_rss_mib", "speedup"]
+            "startup_s", "total_s", "loop_read_s", "loop_raycast_s", "loop_update_s", "stats_s", "write_s",
+            "exit_and_rest_s", "peak_rss_mib", "bytes_per_leaf", "octomap_insert_s", "octomap_peak_rss_mib", "speedup"]
     print(" | ".join(cols))
     for r in rows:
         print(" | ".join(str(r[c]) for c in cols))
