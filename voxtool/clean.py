@@ -23,7 +23,7 @@ import numpy as np
 from voxtool.config import MapParams, SensorModel
 from voxtool.errors import ParameterError
 from voxtool.maps.base import IntegrateTiming, PreparedScan
-from voxtool.parallel import resolve_threads, run_parts
+from voxtool.parallel import resolve_threads
 from voxtool.sources import ScanStream, SourceOptions, open_source
 from voxtool.sources.scan import Scan
 
@@ -110,11 +110,9 @@ class VoidMap:
     def evidence(self, prepared: PreparedScan) -> list:
         """The scan's void evidence: per run of rays, (brick codes, their 512-bit masks of the
         voxels the rays crossed, DDA steps), cast on the map's threads."""
-        from voxtool.maps.octree import _trace_part, ray_parts
+        from voxtool.maps.octree import trace_scan
 
-        scan = prepared.scan
-        return run_parts(self.threads, lambda run: _trace_part(scan, self.params, *run, prepared.near_hits),
-                         ray_parts(scan, self.threads))
+        return trace_scan(prepared.scan, self.params, self.threads, prepared.near_hits)
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         t0 = time.perf_counter()

@@ -111,23 +111,27 @@ def bricks_to_updates(bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray, 
     return out, distinct, starts
 
 
-def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1, group_of=None, near_hits=None,
-                        in_range: bool = False) -> tuple:
+def trace_scan(scan: Scan, params: MapParams, threads: int = 1, near_hits=None) -> list:
+    """A scan's rays traced on `threads` threads, in runs of equal work: per run, (brick codes
+    sorted, touched masks, endpoint masks, DDA steps) (_trace_part; near_hits: clean's stops).
+    The points and the origin must lie in key range."""
+    return run_parts(threads, lambda run: _trace_part(scan, params, *run, near_hits), ray_parts(scan, threads))
+
+
+def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1, group_of=None) -> tuple:
     """(Morton-sorted code << 1 | occupied updates of one scan, its DDA step count, rays merged
     into others (0 unless params.merge_rays), (distinct brick codes, their update starts)).
-    group_of: sorted by group first (bricks_to_updates); near_hits: see _trace_part; in_range:
-    the caller has checked that the points and the origin lie in key range."""
+    group_of: sorted by group first (bricks_to_updates)."""
     n = scan.points.shape[0]
     if n == 0:
         return np.empty(0, dtype=np.int64), 0, 0, None
-    if not in_range:
-        coords_to_keys(scan.origin[None, :], params.resolution, what=f"{scan.source}: sensor origin of scan")
-        coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
+    coords_to_keys(scan.origin[None, :], params.resolution, what=f"{scan.source}: sensor origin of scan")
+    coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
     merged = 0
     if params.merge_rays:
         scan = merge_rays(scan, params)
         merged = n - scan.points.shape[0]
-    parts = run_parts(threads, lambda run: _trace_part(scan, params, *run, near_hits), ray_parts(scan, threads))
+    parts = trace_scan(scan, params, threads)
     if len(parts) == 1:
         bricks, touched, occ, steps = parts[0]
     else:
