@@ -77,6 +77,29 @@ def run_timed(cmd: list[str]) -> tuple[float, int, str]:
     return wall, rss, proc.stdout
 
 
+def datasets(args):
+    """(name, reference resolution, PCD directory) of each dataset asked for that is present."""
+    for name, res in DATASETS:
+        if args.only and name not in args.only:
+            continue
+        source = Path(args.data) / name / "pcd"
+        if not source.is_dir():
+            print(f"skip {name}: {source} absent", file=sys.stderr)
+            continue
+        yield name, res, source
+
+
+def fastest_build(args, build_args: list[str]) -> tuple[float, int, dict]:
+    """(wall seconds, peak RSS bytes, build --json) of the fastest of --repeat runs of
+    `voxtool build BUILD_ARGS --json`."""
+    best = None
+    for _ in range(args.repeat):
+        wall, rss, text = run_timed([*shlex.split(args.voxtool), "build", *build_args, "--json", "--no-progress"])
+        if best is None or wall < best[0]:
+            best = (wall, rss, json.loads(text))
+    return best
+
+
 def voxel_sets(occupied_codes, occupied_depths, free_codes, free_depths):
     from voxtool.keys import expand_leaves
 
@@ -122,27 +145,15 @@ def main() -> None:
     out_dir = Path(args.out).parent
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = []
-    for name, res in DATASETS:
-        if args.only and name not in args.only:
-            continue
-        source = Path(args.data) / name / "pcd"
-        if not source.is_dir():
-            print(f"skip {name}: {source} absent", file=sys.stderr)
-            continue
+    for name, res, source in datasets(args):
         om_bt = out_dir / f"{name}_octomap.bt"
         om_wall, om_rss, _ = run_timed([sys.executable, __file__, "--worker", str(source), str(res), str(om_bt), "-1"])
         om = json.loads(Path(str(om_bt) + ".json").read_text())
         want_occ, want_free = bt_voxels(om_bt)
         for threads in args.threads:
             vxm = out_dir / f"{name}_t{threads}.vxm"
-            best = None
-            for _ in range(args.repeat):
-                wall, rss, text = run_timed([*shlex.split(args.voxtool), "build", str(source), "--resolution", str(res),
-                                             "-o", str(vxm), *(["--threads", str(threads)] if threads >= 0 else []),
-                                             "--json", "--no-progress"])
-                if best is None or wall < best[0]:
-                    best = (wall, rss, json.loads(text))
-            wall, rss, built = best
+            wall, rss, built = fastest_build(args, [str(source), "--resolution", str(res), "-o", str(vxm),
+                                                     *(["--threads", str(threads)] if threads >= 0 else [])])
             got_occ, got_free = vxm_voxels(vxm)
             t = built["timings_s"]
             rows.append({
@@ -173,26 +184,15 @@ def scale(args) -> None:
     out_dir = Path(args.out).parent
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = []
-    for name, ref in DATASETS:
-        if args.only and name not in args.only:
-            continue
-        source = Path(args.data) / name / "pcd"
-        if not source.is_dir():
-            print(f"skip {name}: {source} absent", file=sys.stderr)
-            continue
+    for name, ref, source in datasets(args):
         n = len(list(source.glob("*.pcd")))
         configs = [("scans", ref, max(1, round(n * q / 4))) for q in (1, 2, 3, 4)]
         configs += [("resolution", res, n) for res in SCALE_RESOLUTIONS[name] if res != ref]
         last_om = None  # (insert seconds, ray steps) of OctoMap's last run: predicts the next
         for axis, res, stop in configs:
             vxm = out_dir / f"{name}_scale.vxm"
-            best = None
-            for _ in range(args.repeat):
-                wall, rss, text = run_timed([*shlex.split(args.voxtool), "build", str(source), "--resolution", str(res),
-                                             "--stop", str(stop), "-o", str(vxm), "--json", "--no-progress"])
-                if best is None or wall < best[0]:
-                    best = (wall, rss, json.loads(text))
-            wall, rss, built = best
+            wall, rss, built = fastest_build(args, [str(source), "--resolution", str(res), "--stop", str(stop),
+                                                     "-o", str(vxm)])
             t = built["timings_s"]
             steps = built["ray_steps"]
             row = {"dataset": name, "axis": axis, "resolution": res, "scans": built["scans"], "ray_steps": steps,
