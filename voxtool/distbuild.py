@@ -69,6 +69,7 @@ def cast_batch(sources: list[str], options: SourceOptions, params: MapParams, pi
     scan at 0.1 m is 5.7 million updates: a split by copy, or by a sort, held them twice or more)."""
     from voxtool.kernels.raycast import BRICK_BITS
     from voxtool.maps.octree import scan_bricks_updates
+    from voxtool.parallel import one_blas_thread
 
     def group_of(codes: np.ndarray) -> np.ndarray:
         return partition_of(codes, shard_depth, partitions)
@@ -80,36 +81,40 @@ def cast_batch(sources: list[str], options: SourceOptions, params: MapParams, pi
     counts = dict.fromkeys(COUNTERS, 0)
     stamps = []
     t0 = time.perf_counter()
-    for s, positions in wanted.items():
-        first, last = min(positions), max(positions)
-        keep = set(positions)
-        stream = open_source(sources[s], _slice(options, first, last))
-        for offset, scan in enumerate(stream.scans):
-            if first + offset not in keep:
-                continue
-            # the updates come out partition by partition (Morton order inside each): a piece is a slice
-            packed, steps, merged, runs = scan_bricks_updates(scan, params, threads, group_of)
-            cuts = np.zeros(partitions + 1, np.int64)  # a scan without points: empty pieces
-            if runs is not None:
-                bricks, starts = runs
-                cuts = starts[np.searchsorted(group_of(bricks << np.int64(BRICK_BITS)), np.arange(partitions + 1))]
-            # one scan: the slices are the pieces; several: copies, so each scan's array is freed now
-            # and the pieces are joined below without holding the batch twice
-            own = len(picks) > 1
-            by_pick[(s, first + offset)] = [packed[a:b].copy() if own else packed[a:b]
-                                            for a, b in zip(cuts[:-1], cuts[1:])]
-            stamps.append(scan.stamp_ns)
-            counts["scans"] += 1
-            counts["points"] += scan.points_read
-            counts["points_dropped"] += scan.points_dropped
-            counts["points_dropped_nonfinite"] += scan.dropped_nonfinite
-            counts["points_dropped_min_range"] += scan.dropped_min_range
-            counts["raw_bytes"] += scan.raw_bytes
-            counts["voxel_updates"] += int(packed.shape[0])
-            counts["ray_steps"] += steps
-            counts["rays"] += int(scan.points.shape[0])
-            counts["merged_rays"] += merged
-            del packed
+    blas = one_blas_thread()
+    try:
+        for s, positions in wanted.items():
+            first, last = min(positions), max(positions)
+            keep = set(positions)
+            stream = open_source(sources[s], _slice(options, first, last))
+            for offset, scan in enumerate(stream.scans):
+                if first + offset not in keep:
+                    continue
+                # the updates come out partition by partition (Morton order inside each): a piece is a slice
+                packed, steps, merged, runs = scan_bricks_updates(scan, params, threads, group_of)
+                cuts = np.zeros(partitions + 1, np.int64)  # a scan without points: empty pieces
+                if runs is not None:
+                    bricks, starts = runs
+                    cuts = starts[np.searchsorted(group_of(bricks << np.int64(BRICK_BITS)), np.arange(partitions + 1))]
+                # one scan: the slices are the pieces; several: copies, so each scan's array is freed now
+                # and the pieces are joined below without holding the batch twice
+                own = len(picks) > 1
+                by_pick[(s, first + offset)] = [packed[a:b].copy() if own else packed[a:b]
+                                                for a, b in zip(cuts[:-1], cuts[1:])]
+                stamps.append(scan.stamp_ns)
+                counts["scans"] += 1
+                counts["points"] += scan.points_read
+                counts["points_dropped"] += scan.points_dropped
+                counts["points_dropped_nonfinite"] += scan.dropped_nonfinite
+                counts["points_dropped_min_range"] += scan.dropped_min_range
+                counts["raw_bytes"] += scan.raw_bytes
+                counts["voxel_updates"] += int(packed.shape[0])
+                counts["ray_steps"] += steps
+                counts["rays"] += int(scan.points.shape[0])
+                counts["merged_rays"] += merged
+                del packed
+    finally:
+        blas.restore_original_limits()
     missing = [pk for pk in picks if pk not in by_pick]
     if missing:
         raise RuntimeError(f"scan {missing[0]} was not read (the source changed while the map was built?)")

@@ -57,3 +57,14 @@ def run_parts(threads: int, work, parts: list) -> list:
     if threads <= 1 or len(parts) <= 1:
         return [work(p) for p in parts]
     return list(thread_pool(threads).map(work, parts))
+
+
+def one_blas_thread():
+    """One BLAS thread until restore_original_limits() (or the end of a `with` block): numpy's
+    threaded BLAS (a scan's points times its rotation) would spin on every core the kernels
+    run on, whoever imported numpy first. The command line also sets OPENBLAS_NUM_THREADS; a
+    library caller or a `dask worker` did not: clean of a 64-beam street took 1.64-1.83 s in a
+    Python session against 1.14-1.18 s with one BLAS thread. Every scan loop runs under it."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")

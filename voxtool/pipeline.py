@@ -93,8 +93,9 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
     A backend that casts its rays itself on two threads (the hash map) reads ahead only when a
     third core is free (see read_ahead()).
     """
-    from threadpoolctl import threadpool_limits
     from tqdm import tqdm
+
+    from voxtool.parallel import one_blas_thread
 
     if progress is None:
         progress = sys.stderr.isatty()
@@ -118,11 +119,7 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
     gc_was_enabled = gc.isenabled()
     gc.disable()
     ahead = ThreadPoolExecutor(max_workers=1, thread_name_prefix="voxtool-prepare") if read_ahead(backend) else None
-    # numpy's threaded BLAS (a scan's points times its rotation) would spin on every core the
-    # kernels run on: one thread for the loop, whoever imported numpy first (the command line
-    # also sets OPENBLAS_NUM_THREADS; a library caller did not: clean of a 64-beam street took
-    # 1.64-1.83 s in a Python session against 1.14-1.18 s with one BLAS thread)
-    blas = threadpool_limits(limits=1, user_api="blas")
+    blas = one_blas_thread()
     try:
         future = ahead.submit(read_and_prepare) if ahead else None
         while True:

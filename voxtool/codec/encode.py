@@ -15,6 +15,7 @@ from voxtool.codec.packet import FREE, OCCUPIED, UNKNOWN, encode_packet, keyfram
 from voxtool.errors import ParameterError
 from voxtool.keys import key_bounds, morton_decode
 from voxtool.maps.base import MapBackend, removed_voxels, update_codes
+from voxtool.parallel import one_blas_thread
 from voxtool.sources import ScanStream
 
 
@@ -189,6 +190,7 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
                 seq += 1
 
         bar = tqdm(total=stream.count, unit="scan", disable=not progress, file=sys.stderr, desc="encode")
+        blas = one_blas_thread()
         try:
             for scan in stream.scans:
                 stamp = scan.stamp_ns if scan.stamp_ns else scan.index * period
@@ -233,6 +235,7 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
             if pend_codes.shape[0]:
                 emit(rep.last_stamp_ns)
         finally:
+            blas.restore_original_limits()
             bar.close()
         # the data covers one scan period past the last scan's stamp
         rep.last_stamp_ns += period if rep.scans else 0
