@@ -108,3 +108,39 @@ def test_pruned_tree_counts_equal_the_pruned_trees_node_counts():
     assert tuple(pruned_tree_counts(*eight, np.float32(0), False)) == (1, 0)
     assert tuple(pruned_tree_counts(np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.float32),
                                     np.float32(0), True)) == (0, 0)
+
+
+def test_tree_stats_in_chunks_equal_the_whole_leaves_figures():
+    """A build counts its tree while the snapshot writes the leaves a chunk at a time
+    (stats.TreeStats): every figure equals tree_stats of all the leaves at once, with chunks cut
+    anywhere (one leaf, a few, uneven), for canonical and unpruned leaves."""
+    from voxtool.stats import tree_stats
+
+    def split_some(leaves):  # some leaves as their 8 equal children: a tree that still prunes
+        codes, depths, values = [], [], []
+        for c, d, v in zip(leaves.codes.tolist(), leaves.depths.tolist(), leaves.values.tolist()):
+            if d < 16 and rng.random() < 0.3:
+                step = 1 << (3 * (15 - d))
+                codes += [c + j * step for j in range(8)]
+                depths += [d + 1] * 8
+                values += [v] * 8
+            else:
+                codes.append(c)
+                depths.append(d)
+                values.append(v)
+        return Leaves(np.array(codes, np.int64), np.array(depths, np.uint8), np.array(values, np.float32))
+
+    rng = np.random.default_rng(11)
+    for _ in range(6):
+        canonical = random_tree(rng, max_depth=9)
+        unpruned = split_some(canonical)
+        for leaves, is_canonical in ((canonical, True), (unpruned, False)):
+            whole = tree_stats(leaves, 0.2, 1.0, is_canonical)
+            n = len(leaves)
+            for cuts in ([1] * min(n, 40), rng.integers(1, 500, size=n // 100 + 1), [n // 3 + 1] * 3):
+                bounds = np.minimum(np.cumsum(np.concatenate([[0], cuts])), n)
+                if bounds[-1] < n:
+                    bounds = np.append(bounds, n)
+                chunks = [Leaves(leaves.codes[a:b], leaves.depths[a:b], leaves.values[a:b])
+                          for a, b in zip(bounds[:-1], bounds[1:])]
+                assert tree_stats(iter(chunks), 0.2, 1.0, is_canonical) == whole

@@ -117,3 +117,33 @@ def test_a_reloaded_map_with_coarse_leaves_goes_on_like_the_original(tmp_path):
         back.integrate(scan)
     assert same_leaves(back, whole)
     assert back.node_counts() == whole.node_counts()
+
+
+def test_leaves_in_chunks_and_a_snapshot_written_from_them_equal_the_whole_leaves(tmp_path):
+    """A snapshot goes through a map's leaves a chunk at a time (ShardedOctree.leaf_chunks):
+    joined, the chunks are leaves(), for any chunk size, on a map mixing bricks, pruned bricks
+    and coarse leaves (a reloaded map); and the snapshot's bytes are those of the whole arrays."""
+    from voxtool.io.snapshot import ChunkedArrays
+
+    res = 1.0
+    part = build(sphere_scans(8, 20000, 30.0, seed=11), res, threads=1)
+    save_map(tmp_path / "m.vxm", part, {})
+    m, _ = load_map(tmp_path / "m.vxm")
+    m.tree.threads = 2
+    assert m.tree.coarse.codes.shape[0] > 0
+    whole = m.leaves()
+    names = ("codes", "depths", "values")
+    for max_leaves in (1, 7, 1000, None):
+        m.tree._derived = None  # what was derived (and the joined leaves) is dropped: derive again
+        assert m.tree.leaf_count() == len(whole)
+        chunks = [tuple(getattr(c, f).copy() for f in names) for c in m.tree.leaf_chunks(max_leaves)]
+        assert max_leaves is None or max(len(c[0]) for c in chunks) <= max(max_leaves, 512)  # a brick's at most
+        for k, f in enumerate(names):
+            assert np.array_equal(np.concatenate([c[k] for c in chunks]), getattr(whole, f))
+    m.tree._derived = None
+    streamed = m.state_arrays()
+    assert isinstance(streamed["leaf_codes"], ChunkedArrays)
+    arrays = {"leaf_codes": whole.codes, "leaf_depths": whole.depths, "leaf_values": whole.values}
+    for codec in ("zstd", "raw"):
+        assert snapshot_bytes({"backend": "octree"}, streamed, codec) == snapshot_bytes({"backend": "octree"}, arrays,
+                                                                                        codec)

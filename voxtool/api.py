@@ -4,24 +4,30 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from voxtool.config import MapParams, SensorModel
 from voxtool.errors import ParameterError
+from voxtool.io.snapshot import ChunkedArrays
 from voxtool.maps.base import Leaves, MapBackend
 from voxtool.sources import SourceOptions, open_source
 
 
-def backend_stats(backend: MapBackend) -> dict:
+def backend_stats(backend: MapBackend, tree: dict | None = None) -> dict:
     """A map's figures (docs/parameters.md): voxel counts and bounding box, the nodes of the
-    two trees OctoMap has for it, and the bytes of the backend's own storage."""
+    two trees OctoMap has for it, and the bytes of the backend's own storage. `tree`: the
+    figures of its leaves, when the caller has counted them (tree_stats)."""
     from voxtool.stats import tree_stats
 
     out = {"backend": backend.name, "resolution": backend.params.resolution}
-    out.update(tree_stats(backend.leaves(), backend.params.resolution, backend.sensor.threshold_log,
-                          getattr(backend, "canonical_leaves", False)))
+    if tree is None:
+        chunks = getattr(backend, "leaf_chunks", None)  # a large map's leaves, a chunk at a time
+        tree = tree_stats(chunks() if chunks else backend.leaves(), backend.params.resolution,
+                          backend.sensor.threshold_log, getattr(backend, "canonical_leaves", False))
+    out.update(tree)
     out.update(pool_bytes=backend.memory_bytes(), pool_bytes_used=backend.used_bytes())
     out.update(backend.extra_stats())
     return out
@@ -68,21 +74,36 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
         if writer is not None:
             writer.close(ok)
     t_loop_end = time.perf_counter()
-    result = backend_stats(backend)
-    t_stats = time.perf_counter() - t_loop_end
-    result.update(report.to_dict())
+    counts = report.to_dict()
+    tree, t_stats, t_write = None, 0.0, None
+    if output is not None:
+        info = {"source": str(source), "source_kind": stream.kind, "source_options": options.__dict__,
+                **{k: counts[k] for k in RECORDED_COUNTS}, "last_stamp_ns": report.last_stamp_ns or 0}
+        arrays = backend.state_arrays()
+        leaves = arrays.get("leaf_codes")
+        counter = None
+        if isinstance(leaves, ChunkedArrays):  # the tree's leaves, a chunk at a time: counted as written
+            from voxtool.stats import TreeStats
+
+            counter = TreeStats(backend.sensor.threshold_log, getattr(backend, "canonical_leaves", False))
+            arrays = dict.fromkeys(leaves.names, replace(leaves, chunks=lambda: counter.feed(leaves.chunks())))
+        t0 = time.perf_counter()
+        save_map(output, backend, info, arrays)
+        t_write = time.perf_counter() - t0
+        if counter is not None:
+            tree, t_stats, t_write = counter.result(backend.params.resolution), counter.seconds, t_write - counter.seconds
+    t0 = time.perf_counter()
+    result = backend_stats(backend, tree)
+    t_stats += time.perf_counter() - t0
+    result.update(counts)
     result["threads"] = backend.threads
     if per_scan:
         result["per_scan"] = report.per_scan()
     if writer is not None:
         result["shared_bytes"] = writer.bytes
         result["shared_packets"] = writer.seq
-    if output is not None:
-        info = {"source": str(source), "source_kind": stream.kind, "source_options": options.__dict__,
-                **{k: result[k] for k in RECORDED_COUNTS}, "last_stamp_ns": report.last_stamp_ns or 0}
-        t0 = time.perf_counter()
-        save_map(output, backend, info)
-        result["timings_s"]["write"] = round(time.perf_counter() - t0, 6)
+    if t_write is not None:
+        result["timings_s"]["write"] = round(t_write, 6)
     # where the rest of the command's time goes (docs/design/octree.md): before this call
     # (interpreter, imports, numba's set-up), opening the source and the map, the statistics
     result["timings_s"].update(startup=round(startup, 6) if startup is not None else None,

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -25,38 +27,100 @@ COMPARED = {
 LOG_COMPARED = {"packets": "up", "bytes": "up", "total.avg_Bps": "up", "total.max_Bps": "up"}  # packet logs
 
 
-def tree_stats(leaves: Leaves, resolution: float, threshold_log: float, canonical: bool) -> dict:
+def tree_stats(leaves: Leaves | Iterable[Leaves], resolution: float, threshold_log: float, canonical: bool) -> dict:
     """leaf_stats, and the nodes of OctoMap's two trees of these leaves: `leaf_nodes` /
     `inner_nodes` of the max-likelihood tree a .bt file holds, `octree_leaf_nodes` /
     `octree_inner_nodes` of the log-odds tree OctoMap keeps in memory (`canonical`: the leaves are
-    that tree's already, else they are pruned first)."""
-    from voxtool.kernels.octree import pruned_tree_counts
-    from voxtool.maps.tree import node_counts
+    that tree's already, else they are pruned first). `leaves` may come in consecutive chunks
+    (ShardedOctree.leaf_chunks), each read once."""
+    counter = TreeStats(threshold_log, canonical)
+    for chunk in [leaves] if isinstance(leaves, Leaves) else leaves:
+        counter.add(chunk)
+    return counter.result(resolution)
 
-    out = leaf_stats(leaves, resolution, threshold_log)
-    thr = np.float32(threshold_log)
-    # counted while pruning, without building the pruned trees (their copies cost a kaist03
-    # build 0.3 s, most of it first-touch page faults)
-    octree = node_counts(leaves) if canonical else pruned_tree_counts(leaves.codes, leaves.depths, leaves.values,
-                                                                        thr, False)
-    out["octree_leaf_nodes"], out["octree_inner_nodes"] = (int(n) for n in octree)
-    out["leaf_nodes"], out["inner_nodes"] = (int(n) for n in pruned_tree_counts(
-        leaves.codes, leaves.depths, leaves.values, thr, True))
-    return out
+
+class TreeStats:
+    """tree_stats of leaves added chunk by chunk, in Morton order; `seconds` spent adding."""
+
+    def __init__(self, threshold_log: float, canonical: bool) -> None:
+        from voxtool.kernels.octree import pruned_tree_state
+
+        self.threshold = np.float32(threshold_log)
+        self.canonical = canonical
+        self.summary = LeafSummary(threshold_log)
+        # counted while pruning, without building the pruned trees (their copies cost a kaist03
+        # build 0.3 s, most of it first-touch page faults)
+        self.ml, self.octree = pruned_tree_state(), pruned_tree_state()
+        self.octree_leaves = self.octree_inner = 0
+        self.last = (0, -1)  # the leaf before the next chunk (canonical inner nodes), depth -1: none
+        self.seconds = 0.0
+
+    def add(self, chunk: Leaves) -> None:
+        from voxtool.kernels.octree import inner_nodes, pruned_tree_feed
+
+        if not len(chunk):
+            return
+        t0 = time.perf_counter()
+        self.summary.add(chunk)
+        if self.canonical:
+            self.octree_leaves += len(chunk)
+            self.octree_inner += int(inner_nodes(chunk.codes, chunk.depths, *self.last))
+            self.last = (int(chunk.codes[-1]), int(chunk.depths[-1]))
+        else:
+            pruned_tree_feed(chunk.codes, chunk.depths, chunk.values, self.threshold, False, *self.octree)
+        pruned_tree_feed(chunk.codes, chunk.depths, chunk.values, self.threshold, True, *self.ml)
+        self.seconds += time.perf_counter() - t0
+
+    def feed(self, chunks: Iterable[tuple]) -> Iterable[tuple]:
+        """The (codes, depths, values) chunks passed on, each added on the way (the leaves a
+        snapshot writes, counted in the same pass)."""
+        for chunk in chunks:
+            self.add(Leaves(*chunk))
+            yield chunk
+
+    def result(self, resolution: float) -> dict:
+        from voxtool.kernels.octree import pruned_tree_close
+
+        out = self.summary.result(resolution)
+        counts = (self.octree_leaves, self.octree_inner) if self.canonical else pruned_tree_close(*self.octree)
+        out["octree_leaf_nodes"], out["octree_inner_nodes"] = (int(n) for n in counts)
+        out["leaf_nodes"], out["inner_nodes"] = (int(n) for n in pruned_tree_close(*self.ml))
+        return out
 
 
 def leaf_stats(leaves: Leaves, resolution: float, threshold_log: float) -> dict:
     """Occupied/free voxel counts at the finest resolution (pruned leaves expanded) and the
     metric bounding box of the occupied voxels (outer corners, as OctoMap's getMetricMin/Max)."""
-    from voxtool.kernels.stats import leaf_summary
+    summary = LeafSummary(threshold_log)
+    summary.add(leaves)
+    return summary.result(resolution)
 
-    occ, free, lo_key, hi_key = leaf_summary(leaves.codes, leaves.depths, leaves.values, np.float32(threshold_log))
-    out = {"occupied_voxels": int(occ), "free_voxels": int(free), "occupied_bbox": None}
-    if occ:
-        lo = keys_to_coords(lo_key, resolution) - resolution / 2
-        hi = keys_to_coords(hi_key, resolution) + resolution / 2
-        out["occupied_bbox"] = {"min": [round(float(v), 9) for v in lo], "max": [round(float(v), 9) for v in hi]}
-    return out
+
+class LeafSummary:
+    """leaf_stats of leaves added chunk by chunk."""
+
+    def __init__(self, threshold_log: float) -> None:
+        self.threshold = np.float32(threshold_log)
+        self.occupied = self.free = 0
+        self.lo = self.hi = None
+
+    def add(self, leaves: Leaves) -> None:
+        from voxtool.kernels.stats import leaf_summary
+
+        occ, free, lo, hi = leaf_summary(leaves.codes, leaves.depths, leaves.values, self.threshold)
+        self.occupied += int(occ)
+        self.free += int(free)
+        if occ:
+            self.lo = lo if self.lo is None else np.minimum(self.lo, lo)
+            self.hi = hi if self.hi is None else np.maximum(self.hi, hi)
+
+    def result(self, resolution: float) -> dict:
+        out = {"occupied_voxels": self.occupied, "free_voxels": self.free, "occupied_bbox": None}
+        if self.occupied:
+            lo = keys_to_coords(self.lo, resolution) - resolution / 2
+            hi = keys_to_coords(self.hi, resolution) + resolution / 2
+            out["occupied_bbox"] = {"min": [round(float(v), 9) for v in lo], "max": [round(float(v), 9) for v in hi]}
+        return out
 
 
 def _figure(d: dict, dotted: str):

@@ -13,8 +13,9 @@ from voxtool.io.snapshot import Snapshot, read_snapshot, write_snapshot
 from voxtool.maps.base import Leaves, MapBackend
 
 
-def save_map(path: str | Path, backend: MapBackend, info: dict) -> None:
-    """Write `backend` with its parameters and `info` (source, counts, timings) to a .vxm file."""
+def save_map(path: str | Path, backend: MapBackend, info: dict, arrays: dict | None = None) -> None:
+    """Write `backend` with its parameters and `info` (source, counts, timings) to a .vxm file;
+    `arrays`: its state_arrays(), when the caller has them."""
     header = {
         "voxtool_version": voxtool.__version__,
         "backend": backend.name,
@@ -23,7 +24,7 @@ def save_map(path: str | Path, backend: MapBackend, info: dict) -> None:
         "backend_params": backend.extra_meta(),
         "info": info,
     }
-    write_snapshot(path, header, backend.state_arrays())
+    write_snapshot(path, header, backend.state_arrays() if arrays is None else arrays)
 
 
 def validate_leaves(leaves: Leaves, where: str) -> None:

@@ -74,7 +74,7 @@ def add_part(units: Units, leaves: Leaves, shard_depth: int, spool=None) -> None
         units.leaves.append(b - a)
         codes, depths = leaves.codes[a:b], leaves.depths[a:b]
         if spool is None:
-            units.inner.append(int(K.inner_nodes(codes, depths)) - d)
+            units.inner.append(int(K.inner_nodes(codes, depths, 0, -1)) - d)
             units.offset.append(0)
             units.length.append(0)
             continue

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import struct
 import zlib
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,21 +44,62 @@ class Snapshot:
 CODECS = ("zstd", "raw")
 
 
-def _snapshot_parts(header: dict, arrays: dict[str, np.ndarray], codec: str, level: int) -> list:
+@dataclass
+class ChunkedArrays:
+    """Arrays of one length written without being held whole (a large map's leaves): `chunks()`
+    yields tuples of consecutive pieces, one per name, each compressed before the next is asked
+    for. The bytes are those of the joined arrays (zstd is told the size first)."""
+
+    names: tuple[str, ...]
+    dtypes: tuple[str, ...]
+    length: int
+    chunks: Callable[[], Iterable[tuple[np.ndarray, ...]]]
+
+
+def _stored(array: np.ndarray, compressor, codec: str) -> bytes:
+    raw = memoryview(np.ascontiguousarray(array, dtype=DTYPES[np.dtype(array.dtype).name])).cast("B")  # no copy
+    return compressor.compress(raw) if codec == "zstd" else raw.tobytes()
+
+
+def _stored_chunked(group: ChunkedArrays, level: int, codec: str) -> dict[str, tuple[bytes, int]]:
+    """name -> (stored bytes, raw bytes) of every array of a group, in one pass over its chunks
+    (a compressor each: one zstd context streams one frame at a time)."""
+    sizes = [group.length * np.dtype(DTYPES[d]).itemsize for d in group.dtypes]
+    streams = [zstandard.ZstdCompressor(level=level, threads=1).compressobj(size=n) if codec == "zstd" else None
+               for n in sizes]
+    out: list[list[bytes]] = [[] for _ in group.names]
+    for pieces in group.chunks():
+        for k, piece in enumerate(pieces):
+            raw = memoryview(np.ascontiguousarray(piece, dtype=DTYPES[group.dtypes[k]])).cast("B")
+            out[k].append(streams[k].compress(raw) if codec == "zstd" else raw.tobytes())
+    for k, stream in enumerate(streams):
+        if stream is not None:
+            out[k].append(stream.flush())
+    return {name: (b"".join(parts), n) for name, parts, n in zip(group.names, out, sizes)}
+
+
+def _snapshot_parts(header: dict, arrays: dict[str, np.ndarray | ChunkedArrays], codec: str, level: int) -> list:
     """The snapshot's bytes before its CRC, as pieces (fixed fields and header, then each
     payload): the header lists every payload's size and CRC, so all are compressed first."""
     compressor = zstandard.ZstdCompressor(level=level, threads=-1)
     payloads = []
     table = []
     offset = 0
+    grouped: dict[str, tuple[bytes, int]] = {}
     for name, array in arrays.items():
-        dtype_name = np.dtype(array.dtype).name
-        if dtype_name not in DTYPES:
-            raise ValueError(f"array {name}: dtype {dtype_name} not storable")
-        raw = memoryview(np.ascontiguousarray(array, dtype=DTYPES[dtype_name])).cast("B")  # no copy
-        stored = compressor.compress(raw) if codec == "zstd" else raw.tobytes()
-        table.append({"name": name, "dtype": dtype_name, "shape": list(array.shape), "codec": codec,
-                      "offset": offset, "stored_bytes": len(stored), "raw_bytes": raw.nbytes,
+        if isinstance(array, ChunkedArrays):
+            if name not in grouped:
+                grouped.update(_stored_chunked(array, level, codec))
+            dtype_name, shape = array.dtypes[array.names.index(name)], [array.length]
+            stored, raw_bytes = grouped[name]
+        else:
+            dtype_name, shape = np.dtype(array.dtype).name, list(array.shape)
+            if dtype_name not in DTYPES:
+                raise ValueError(f"array {name}: dtype {dtype_name} not storable")
+            stored = _stored(array, compressor, codec)
+            raw_bytes = array.nbytes
+        table.append({"name": name, "dtype": dtype_name, "shape": shape, "codec": codec,
+                      "offset": offset, "stored_bytes": len(stored), "raw_bytes": raw_bytes,
                       "crc32": zlib.crc32(stored)})
         payloads.append(stored)
         offset += len(stored)
@@ -69,7 +111,7 @@ def _snapshot_parts(header: dict, arrays: dict[str, np.ndarray], codec: str, lev
     return [_FIXED.pack(MAGIC, VERSION, 0, len(head)) + head, *payloads]
 
 
-def snapshot_bytes(header: dict, arrays: dict[str, np.ndarray], codec: str = "zstd", level: int = 3) -> bytes:
+def snapshot_bytes(header: dict, arrays: dict[str, np.ndarray | ChunkedArrays], codec: str = "zstd", level: int = 3) -> bytes:
     """Encode a snapshot. `header` must be JSON-serialisable; 'arrays' is filled in here.
     codec "raw" stores arrays uncompressed (byte-exact golden vectors across zstd versions).
     zstd runs on every core: its multi-threaded frames are the same bytes whatever the number
@@ -78,7 +120,7 @@ def snapshot_bytes(header: dict, arrays: dict[str, np.ndarray], codec: str = "zs
     return body + struct.pack("<I", zlib.crc32(body))
 
 
-def write_snapshot(path: str | Path, header: dict, arrays: dict[str, np.ndarray]) -> None:
+def write_snapshot(path: str | Path, header: dict, arrays: dict[str, np.ndarray | ChunkedArrays]) -> None:
     """snapshot_bytes written piece by piece (no joined copies of the compressed payloads)."""
     crc = 0
     with atomic_writer(path) as handle:

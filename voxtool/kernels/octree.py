@@ -263,43 +263,61 @@ def _shared_depth(a, b):
 
 
 @njit(cache=True, nogil=True)
-def inner_nodes(codes, depths):
+def inner_nodes(codes, depths, prev_code, prev_depth):
     """Inner nodes of the tree whose leaves are these Morton-ordered, non-overlapping leaves: each
     leaf adds its ancestors below the deepest one it shares with the leaf before it (in depth-
-    first order every ancestor shared with an earlier leaf is shared with the previous one)."""
+    first order every ancestor shared with an earlier leaf is shared with the previous one).
+    prev_code / prev_depth: the leaf before the first (leaves counted in chunks), depth -1 none."""
     total = np.int64(0)
+    last_code = prev_code
+    last_depth = np.int64(prev_depth)
     for i in range(codes.shape[0]):
         d = np.int64(depths[i])
-        if i == 0:
+        if last_depth < 0:
             total += d
-            continue
-        shared = min(_shared_depth(codes[i], codes[i - 1]), d - 1, np.int64(depths[i - 1]) - 1)
-        total += d - 1 - shared
+        else:
+            shared = min(_shared_depth(codes[i], last_code), d - 1, last_depth - 1)
+            total += d - 1 - shared
+        last_code = codes[i]
+        last_depth = d
     return total
 
 
-@njit(cache=True, nogil=True)
 def pruned_tree_counts(codes, depths, values, threshold, max_likelihood):
     """(leaf nodes, inner nodes) of OctoMap's pruned tree of Morton-ordered, non-overlapping
     leaves (max_likelihood: each value first made +1 / -1 by `threshold`, the tree a .bt holds),
-    in one pass and without copies: what node_counts(collapse(...)) gives. The nodes on the
-    path to the current leaf are open; a node closes when a leaf outside it arrives, and
-    becomes a leaf of its parent when its 8 children are leaves of one value."""
-    n_child = np.zeros(17, np.int64)
-    n_leaf = np.zeros(17, np.int64)  # leaf children not yet counted (the node may still prune)
-    same = np.zeros(17, np.bool_)  # every child so far is a leaf of value value[k]
-    value = np.zeros(17, np.float32)
-    prefix = np.full(17, -1, np.int64)  # the open node at depth k: codes >> 3 (16 - k) equal to this
-    open_depth = 0  # nodes 0..open_depth - 1 are open (the root once any leaf came)
-    leaves = np.int64(0)
-    inner = np.int64(0)
+    in one pass and without copies: what node_counts(collapse(...)) gives."""
+    state = pruned_tree_state()
+    pruned_tree_feed(codes, depths, values, threshold, max_likelihood, *state)
+    return pruned_tree_close(*state)
+
+
+def pruned_tree_state() -> tuple:
+    """The open nodes of a pruned-tree count (pruned_tree_feed) before any leaf."""
+    return (np.zeros(17, np.int64), np.zeros(17, np.int64), np.zeros(17, np.bool_), np.zeros(17, np.float32),
+            np.full(17, -1, np.int64), np.zeros(4, np.int64))
+
+
+@njit(cache=True, nogil=True)
+def pruned_tree_feed(codes, depths, values, threshold, max_likelihood, n_child, n_leaf, same, value, prefix, state):
+    """Count the next Morton-ordered leaves into a pruned-tree count (pruned_tree_counts), in as
+    many calls as chunks. The nodes on the path to the current leaf are open; a node closes when
+    a leaf outside it arrives, and becomes a leaf of its parent when its 8 children are leaves of
+    one value. Per depth k: children so far, leaf children not yet counted (the node may still
+    prune), whether every child so far is a leaf of value value[k], and the node's code prefix
+    (codes >> 3 (16 - k)); state: open depth (nodes 0..it - 1 are open), leaves and inner nodes
+    counted, 1 when the root is a leaf."""
+    open_depth = state[0]
+    leaves = state[1]
+    inner = state[2]
     for i in range(codes.shape[0]):
         d = np.int64(depths[i])
         v = values[i]
         if max_likelihood:
             v = np.float32(1.0) if v > threshold else np.float32(-1.0)
         if d == 0:  # the root is a leaf: the whole tree
-            return np.int64(1), np.int64(0)
+            state[3] = 1
+            return
         c = codes[i]
         # close the open nodes that do not hold this leaf, deepest first, into their parents
         while open_depth > 1 and (c >> (3 * (16 - (open_depth - 1)))) != prefix[open_depth - 1]:
@@ -332,7 +350,20 @@ def pruned_tree_counts(codes, depths, values, threshold, max_likelihood):
         n_leaf[p] += 1
         same[p] = (same[p] and value[p] == v) if n_child[p] > 1 else True
         value[p] = v if n_child[p] == 1 else value[p]
-    # close every open node, the root last
+    state[0] = open_depth
+    state[1] = leaves
+    state[2] = inner
+
+
+@njit(cache=True, nogil=True)
+def pruned_tree_close(n_child, n_leaf, same, value, prefix, state):
+    """(leaf nodes, inner nodes) of a pruned-tree count once every leaf is fed: every open node
+    closes, the root last."""
+    if state[3]:
+        return np.int64(1), np.int64(0)
+    open_depth = state[0]
+    leaves = state[1]
+    inner = state[2]
     while open_depth > 0:
         k = open_depth - 1
         if n_child[k] == 8 and same[k]:

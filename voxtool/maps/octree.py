@@ -11,6 +11,7 @@ import numpy as np
 
 from voxtool.config import MapParams, SensorModel
 from voxtool.errors import ParameterError, SourceError
+from voxtool.io.snapshot import ChunkedArrays
 from voxtool.kernels import octree as K
 from voxtool.kernels.raycast import (
     BRICK_BITS,
@@ -247,6 +248,10 @@ class OctreeMap:
     def leaves(self) -> Leaves:
         return self.tree.leaves()
 
+    def leaf_chunks(self):
+        """leaves() in consecutive chunks, without holding them all (ShardedOctree.leaf_chunks)."""
+        return self.tree.leaf_chunks()
+
     def node_counts(self) -> tuple[int, int]:
         return self.tree.node_counts()
 
@@ -258,9 +263,12 @@ class OctreeMap:
     def used_bytes(self) -> int:
         return self.tree.used_bytes()
 
-    def state_arrays(self) -> dict[str, np.ndarray]:
-        leaves = self.leaves()
-        return {"leaf_codes": leaves.codes, "leaf_depths": leaves.depths, "leaf_values": leaves.values}
+    def state_arrays(self) -> dict[str, ChunkedArrays]:
+        """The leaves, for a snapshot written a chunk at a time (its bytes are those of leaves())."""
+        tree = self.tree
+        leaves = ChunkedArrays(("leaf_codes", "leaf_depths", "leaf_values"), ("int64", "uint8", "float32"),
+                               tree.leaf_count(), lambda: ((c.codes, c.depths, c.values) for c in tree.leaf_chunks()))
+        return dict.fromkeys(leaves.names, leaves)
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
         self.tree = ShardedOctree(self.shard_depth, self.threads)

@@ -32,6 +32,7 @@ MIN_SHARD_DEPTH = 8  # a directory row holds 8^(13 - depth) entries: 128 KiB at 
 SMALL_BATCH = 20_000  # updates; below this one thread applies a batch (a hand-off costs more)
 RESETTLE_BELOW = 2.0**-40  # a decaying map's pending scale: below it, stored log-odds near float32's range
 _NONE_F32 = np.zeros(0, dtype=np.float32)
+LEAF_CHUNK = 1 << 20  # leaves a chunk of leaf_chunks: 13 MiB, big enough that a chunk's hand-offs cost nothing
 _EMPTY = Leaves(np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.float32))
 
 
@@ -375,32 +376,61 @@ class ShardedOctree:
         return node_counts(self.leaves())
 
     def leaves(self) -> Leaves:
-        """All leaves of the tree in Morton order."""
+        """All leaves of the tree in Morton order (kept until the next change)."""
+        d = self._derive()
+        if d.leaves is None:
+            d.leaves = next(iter(self.leaf_chunks(None)), _EMPTY)
+        return d.leaves
+
+    def leaf_count(self) -> int:
+        """len(leaves()), without extracting them."""
         d = self._derive()
         if d.leaves is not None:
-            return d.leaves
+            return len(d.leaves)
+        return int(d.counts[~d.root_leaf, 0].sum()) + len(d.top)
+
+    def leaf_chunks(self, max_leaves: int | None = LEAF_CHUNK):
+        """The leaves of `leaves()` as consecutive chunks of at most `max_leaves` (None: one
+        chunk), or of one brick's leaves where a brick holds more. A chunk is a view of buffers
+        the next chunk reuses: read it before asking for the next. A build's snapshot and
+        statistics go through the leaves this way, never holding all of them (13 bytes a leaf)."""
+        d = self._derive()
+        if d.leaves is not None:
+            yield d.leaves
+            return
         inner = np.flatnonzero(~d.root_leaf)  # bricks whose own leaves are the tree's
         first = d.codes[inner] << K.BRICK_BITS
         per = d.counts[inner, 0]
         # a brick's leaves start after the leaves of the bricks and top leaves before it
-        before = np.concatenate([[0], np.cumsum(per)[:-1]]).astype(np.int64)
-        offsets = before + np.searchsorted(d.top.codes, first)
-        total = int(per.sum()) + len(d.top)
-        codes = np.empty(total, dtype=np.int64)
-        depths = np.empty(total, dtype=np.uint8)
-        values = np.empty(total, dtype=np.float32)
-        if len(d.top):
-            leaves_before = np.concatenate([[0], np.cumsum(per)])[np.searchsorted(first, d.top.codes)]
-            at_top = np.arange(len(d.top)) + leaves_before
-            codes[at_top], depths[at_top], values[at_top] = d.top.codes, d.top.depths, d.top.values
-        slots, l15, l14 = d.slots[inner], d.l15[inner], d.l14[inner]
-        bcodes = d.codes[inner]
+        before = np.concatenate([[0], np.cumsum(per)]).astype(np.int64)
+        offsets = before[:-1] + np.searchsorted(d.top.codes, first)
+        total = int(before[-1]) + len(d.top)
+        at_top = np.arange(len(d.top)) + before[np.searchsorted(first, d.top.codes)]
+        step = total if max_leaves is None else max(int(max_leaves), 1)
+        size = min(max(step, K.BRICK), total)
+        codes = np.empty(size, dtype=np.int64)
+        depths = np.empty(size, dtype=np.uint8)
+        values = np.empty(size, dtype=np.float32)
+        slots, l15, l14, bcodes = d.slots[inner], d.l15[inner], d.l14[inner], d.codes[inner]
         vals = self.arena.vals
-        run_parts(self.threads, lambda r: K.brick_leaves(vals, slots, bcodes, r[0], r[1], l15, l14, offsets, codes,
-                                                         depths, values),
-                  balanced_runs(np.concatenate([[0], np.cumsum(per)]), self.threads))
-        d.leaves = Leaves(codes, depths, values)
-        return d.leaves
+        lo = 0
+        while lo < total:
+            # `step` leaves, or up to the brick holding the end (a brick's leaves come out of one
+            # kernel call), or that whole brick when it starts the chunk
+            hi = min(lo + step, total)
+            k = int(np.searchsorted(offsets, hi, side="right")) - 1
+            if k >= 0 and offsets[k] < hi < offsets[k] + per[k]:
+                hi = int(offsets[k]) if offsets[k] > lo else int(offsets[k] + per[k])
+            a, b = np.searchsorted(offsets, [lo, hi]).tolist()  # the chunk's bricks
+            tops = slice(*np.searchsorted(at_top, [lo, hi]).tolist())
+            put = at_top[tops] - lo
+            codes[put], depths[put], values[put] = d.top.codes[tops], d.top.depths[tops], d.top.values[tops]
+            local = offsets - lo  # the chunk's bricks write from their place in it
+            runs = [(a + r0, a + r1) for r0, r1 in balanced_runs(np.append(local[a:b], hi - lo), self.threads)]
+            run_parts(self.threads, lambda r, local=local: K.brick_leaves(vals, slots, bcodes, r[0], r[1], l15, l14,
+                                                                          local, codes, depths, values), runs)
+            yield Leaves(codes[: hi - lo], depths[: hi - lo], values[: hi - lo])
+            lo = hi
 
     def used_bytes(self) -> int:
         """Bytes holding the map's content: its bricks, directory rows and coarse leaves (as

@@ -23,7 +23,7 @@ def collapse(leaves: Leaves, deepest: int = 16) -> Leaves:
 def node_counts(leaves: Leaves) -> tuple[int, int]:
     """(leaf nodes, inner nodes) of the tree of canonical leaves, as OctoMap counts them
     (OcTree::getNumLeafNodes(), size() - that)."""
-    return len(leaves), int(K.inner_nodes(leaves.codes, leaves.depths))
+    return len(leaves), int(K.inner_nodes(leaves.codes, leaves.depths, 0, -1))
 
 
 def max_likelihood(leaves: Leaves, threshold_log: float) -> Leaves:
