@@ -147,3 +147,29 @@ def test_leaves_in_chunks_and_a_snapshot_written_from_them_equal_the_whole_leave
     for codec in ("zstd", "raw"):
         assert snapshot_bytes({"backend": "octree"}, streamed, codec) == snapshot_bytes({"backend": "octree"}, arrays,
                                                                                         codec)
+
+
+@pytest.mark.parametrize("decay", [None, 0.15])
+def test_updates_from_brick_masks_equal_the_per_voxel_updates(tmp_path, decay):
+    """A build applies each scan's updates straight from its brick masks (ShardedOctree.apply_masks);
+    the per-voxel update list (PreparedScan.updates(), which `encode` and the other backends
+    read) must give the same map: on a reloaded map with coarse leaves (new bricks start from
+    the leaf they split), with clamping, and with decay forgetting voxels between scans."""
+    part = build(sphere_scans(6, 20000, 30.0, seed=11), 1.0, threads=1)
+    save_map(tmp_path / "m.vxm", part, {})
+    later = sphere_scans(4, 4000, 45.0, seed=12) + world_scans(3, 3000, seed=5)
+    maps = []
+    for expand in (False, True):
+        m, _ = load_map(tmp_path / "m.vxm")
+        m.threads = m.tree.threads = 2
+        m.decay_half_life = decay
+        for i, scan in enumerate(later):
+            scan.stamp_ns = i * 100_000_000
+            prepared = m.prepare(scan)
+            assert prepared.packed is None  # kept as masks until asked for
+            if expand:
+                prepared.updates()
+            timing = m.apply(prepared)
+            assert timing.voxel_updates == prepared.updates().shape[0]
+        maps.append(m)
+    assert same_leaves(*maps)

@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from voxtool.kernels.raycast import lowest_bit
+
 BRICK = 512  # voxels per brick
 BRICK_BITS = 9  # brick code = voxel code >> 9
 BRICK_DEPTH = 13  # the depth of a brick's root node
@@ -92,6 +94,43 @@ def apply_bricks(vals, slots, fresh, init, starts, lo, hi, items, values, mode, 
         else:
             for i in range(starts[k], starts[k + 1]):
                 vals[base + (items[i] & (BRICK - 1))] = values[i]
+
+
+@njit(cache=True, nogil=True)
+def apply_masks(vals, slots, fresh, init, touched, occ, order, firsts, lo, hi, hit, miss, cmin, cmax, forget):
+    """apply_bricks' ADD for one scan's merged brick masks (maps.octree.ScanBricks), without a
+    list of per-voxel updates: distinct brick k (slot slots[k]) holds the voxels set in the OR of
+    its rows order[firsts[k]:firsts[k + 1]] of `touched`, occupied where set in `occ`. Bits are
+    visited in order, so each voxel gets the update apply_bricks would give it. Returns how many
+    voxels were updated."""
+    n = 0
+    for k in range(lo, hi):
+        base = slots[k] * BRICK
+        if fresh[k]:
+            for j in range(BRICK):
+                vals[base + j] = init[k]
+        for w in range(8):
+            x = np.int64(0)
+            o = np.int64(0)
+            for j in range(firsts[k], firsts[k + 1]):
+                x |= touched[order[j], w]
+                o |= occ[order[j], w]
+            at0 = base + (w << 6)
+            while x != 0:
+                bit = lowest_bit(x)
+                at = at0 + bit
+                v = vals[at]
+                if v != v or abs(v) < forget:  # unknown, or forgotten by a decay step (forget 0: never)
+                    v = np.float32(0.0)
+                v += hit if (o >> bit) & 1 else miss
+                if v < cmin:
+                    v = cmin
+                elif v > cmax:
+                    v = cmax
+                vals[at] = v
+                n += 1
+                x &= x - 1  # that bit done
+    return n
 
 
 @njit(cache=True, nogil=True)

@@ -31,6 +31,12 @@ _DEBRUIJN_MULT = np.int64(0x03F79D71B4CB0A89)
 
 
 @njit(cache=True, inline="always")
+def lowest_bit(x):
+    """Index of the lowest set bit of x (not 0): a de Bruijn multiply of x & -x."""
+    return _DEBRUIJN[(((x & -x) * _DEBRUIJN_MULT) >> 58) & 63]
+
+
+@njit(cache=True, inline="always")
 def _brick_slot(brick, mask):
     return ((brick * _HASH_MULT) >> 24) & mask
 
@@ -338,11 +344,10 @@ def expand_bricks(codes, touched, occ, order, firsts, k0, k1, starts, out):
                 o |= occ[order[j], w]
             word = (base | (w << 6)) << 1
             while x != 0:
-                low = x & -x
-                tz = _DEBRUIJN[((low * _DEBRUIJN_MULT) >> 58) & 63]
+                tz = lowest_bit(x)
                 out[n] = word | (tz << 1) | ((o >> tz) & 1)
                 n += 1
-                x ^= low
+                x &= x - 1
 
 
 @njit(cache=True, nogil=True)

@@ -53,7 +53,7 @@ class IntegrateTiming:
 class PreparedScan:
     """A scan's voxel updates computed ahead of the map update (ray casting is map-independent)."""
 
-    packed: np.ndarray  # Morton-sorted code << 1 | occupied
+    packed: np.ndarray | None  # Morton-sorted code << 1 | occupied; None while kept as `bricks` (updates())
     steps: int
     seconds: float
     rays: int = 0
@@ -65,6 +65,15 @@ class PreparedScan:
     brick_runs: tuple | None = None  # (distinct 8^3-brick codes, where each one's updates start) in packed
     source: str = ""  # where the scan came from (for messages)
     near_hits: tuple | None = None  # clean's rays' stop and skip table (kernels.clean.near_hits_table)
+    bricks: Any = None  # the octree's: the updates as merged brick masks (maps.octree.ScanBricks)
+    threads: int = 1  # threads to expand `bricks` on
+
+    def updates(self) -> np.ndarray:
+        """`packed`, expanded from `bricks` the first time it is asked for."""
+        if self.packed is None:
+            self.packed, starts = self.bricks.updates(self.threads)
+            self.brick_runs = (self.bricks.distinct, starts)
+        return self.packed
 
 
 class MapBackend(Protocol):
@@ -115,7 +124,7 @@ def update_codes(backend: MapBackend, prepared: PreparedScan) -> np.ndarray:
     """Morton codes (sorted) whose state the next backend.apply(prepared) updates. A backend
     that casts rays against its own map (the hash map) computes them here, at the last moment."""
     own = getattr(backend, "update_codes", None)
-    return own(prepared) if own is not None else prepared.packed >> 1
+    return own(prepared) if own is not None else prepared.updates() >> 1
 
 
 def removed_voxels(backend: MapBackend) -> tuple[np.ndarray, np.ndarray] | None:

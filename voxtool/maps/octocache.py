@@ -136,10 +136,12 @@ class OctoCacheMap:
         probe.flush()
 
     def prepare(self, scan: Scan) -> PreparedScan:
-        return self.tree.prepare(scan)
+        prepared = self.tree.prepare(scan)
+        prepared.updates()  # the cache takes per-voxel updates: expanded here, on the read-ahead thread
+        return prepared
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
-        packed = prepared.packed
+        packed = prepared.updates()
         s = self.sensor
         t0 = time.perf_counter()
         self._wait()  # a cache miss reads the octree: thread 2 must be done writing

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -86,30 +87,58 @@ def ray_parts(scan: Scan, threads: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
 
 
+@dataclass
+class ScanBricks:
+    """A scan's updated voxels as bricks (kernels.raycast.scan_bricks), merged: the distinct brick
+    codes in order, and per distinct brick k its rows order[firsts[k]:firsts[k + 1]] of the
+    touched and endpoint masks (a brick several ray runs filled has several rows, OR-ed)."""
+
+    distinct: np.ndarray
+    touched: np.ndarray
+    occ: np.ndarray
+    order: np.ndarray
+    firsts: np.ndarray
+
+    @classmethod
+    def merge(cls, bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray, group_of=None) -> ScanBricks:
+        """group_of (voxel codes -> small ints): the bricks ordered by group first, then Morton."""
+        key = bricks
+        if group_of is not None:  # brick codes have 39 bits: the group goes above them
+            key = (group_of(bricks << BRICK_BITS).astype(np.int64) << np.int64(40)) | bricks
+        order = np.argsort(key, kind="stable")
+        firsts = np.flatnonzero(np.diff(key[order], prepend=np.int64(-1)))  # a brick several threads filled: once
+        return cls(bricks[order][firsts], touched, occ, order, np.append(firsts, key.shape[0]))
+
+    def runs(self, threads: int) -> list[tuple[int, int]]:
+        """Runs of distinct bricks, one per thread (one for few bricks)."""
+        n = self.distinct.shape[0]
+        parts = max(1, min(threads, n // BRICKS_PER_PART))
+        return [(n * k // parts, n * (k + 1) // parts) for k in range(parts)]
+
+    def updates(self, threads: int) -> tuple[np.ndarray, np.ndarray]:
+        """(Morton-sorted voxel updates code << 1 | occupied, where each distinct brick's start),
+        expanded on `threads` threads, each a run of bricks into its own part of the output."""
+        n = self.distinct.shape[0]
+        runs = self.runs(threads)
+        counts = np.empty(n, dtype=np.int64)
+        run_parts(threads, lambda r: brick_voxels(self.touched, self.order, self.firsts, r[0], r[1], counts), runs)
+        starts = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(counts, out=starts[1:])
+        out = np.empty(int(starts[-1]), dtype=np.int64)
+        run_parts(threads, lambda r: expand_bricks(self.distinct, self.touched, self.occ, self.order, self.firsts,
+                                                   r[0], r[1], starts, out), runs)
+        return out, starts
+
+
 def bricks_to_updates(bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray, threads: int,
                       group_of=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Morton-sorted voxel updates (code << 1 | occupied) of a scan's bricks, with the distinct
-    brick codes and where each brick's updates start (the runs the map update works by);
-    expanded on `threads` threads, each a run of bricks into its own part of the output.
-    group_of (voxel codes -> small ints): the bricks ordered by group first, then Morton, so each
-    group's updates are one slice of the output (a Dask cast's partitions, without a copy)."""
-    key = bricks
-    if group_of is not None:  # brick codes have 39 bits: the group goes above them
-        key = (group_of(bricks << BRICK_BITS).astype(np.int64) << np.int64(40)) | bricks
-    order = np.argsort(key, kind="stable")
-    firsts = np.flatnonzero(np.diff(key[order], prepend=np.int64(-1)))  # a brick several threads filled: once
-    distinct = bricks[order][firsts]
-    firsts = np.append(firsts, key.shape[0])
-    n = distinct.shape[0]
-    parts = max(1, min(threads, n // BRICKS_PER_PART))
-    runs = [(n * k // parts, n * (k + 1) // parts) for k in range(parts)]
-    counts = np.empty(n, dtype=np.int64)
-    run_parts(threads, lambda r: brick_voxels(touched, order, firsts, r[0], r[1], counts), runs)
-    starts = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(counts, out=starts[1:])
-    out = np.empty(int(starts[-1]), dtype=np.int64)
-    run_parts(threads, lambda r: expand_bricks(distinct, touched, occ, order, firsts, r[0], r[1], starts, out), runs)
-    return out, distinct, starts
+    brick codes and where each brick's updates start (the runs the map update works by).
+    group_of: each group's updates are one slice of the output (a Dask cast's partitions,
+    without a copy; ScanBricks.merge)."""
+    merged = ScanBricks.merge(bricks, touched, occ, group_of)
+    out, starts = merged.updates(threads)
+    return out, merged.distinct, starts
 
 
 def trace_scan(scan: Scan, params: MapParams, threads: int = 1, near_hits=None) -> list:
@@ -119,13 +148,12 @@ def trace_scan(scan: Scan, params: MapParams, threads: int = 1, near_hits=None) 
     return run_parts(threads, lambda run: _trace_part(scan, params, *run, near_hits), ray_parts(scan, threads))
 
 
-def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1, group_of=None) -> tuple:
-    """(Morton-sorted code << 1 | occupied updates of one scan, its DDA step count, rays merged
-    into others (0 unless params.merge_rays), (distinct brick codes, their update starts)).
-    group_of: sorted by group first (bricks_to_updates)."""
+def cast_scan(scan: Scan, params: MapParams, threads: int = 1, group_of=None) -> tuple[ScanBricks | None, int, int]:
+    """(the voxels one scan updates as merged bricks, None for no points; its DDA step count;
+    rays merged into others, 0 unless params.merge_rays). group_of: ScanBricks.merge."""
     n = scan.points.shape[0]
     if n == 0:
-        return np.empty(0, dtype=np.int64), 0, 0, None
+        return None, 0, 0
     coords_to_keys(scan.origin[None, :], params.resolution, what=f"{scan.source}: sensor origin of scan")
     coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
     merged = 0
@@ -140,8 +168,18 @@ def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1, group_o
         touched = np.concatenate([p[1] for p in parts])
         occ = np.concatenate([p[2] for p in parts])
         steps = sum(p[3] for p in parts)
-    packed, distinct, starts = bricks_to_updates(bricks, touched, occ, threads, group_of)
-    return packed, int(steps), merged, (distinct, starts)
+    return ScanBricks.merge(bricks, touched, occ, group_of), int(steps), merged
+
+
+def scan_bricks_updates(scan: Scan, params: MapParams, threads: int = 1, group_of=None) -> tuple:
+    """(Morton-sorted code << 1 | occupied updates of one scan, its DDA step count, rays merged
+    into others (0 unless params.merge_rays), (distinct brick codes, their update starts)).
+    group_of: sorted by group first (ScanBricks.merge)."""
+    merged_bricks, steps, merged = cast_scan(scan, params, threads, group_of)
+    if merged_bricks is None:
+        return np.empty(0, dtype=np.int64), 0, 0, None
+    packed, starts = merged_bricks.updates(threads)
+    return packed, steps, merged, (merged_bricks.distinct, starts)
 
 
 def scan_updates(scan: Scan, params: MapParams, threads: int = 1) -> tuple[np.ndarray, int, int]:
@@ -157,6 +195,16 @@ def prepare_scan(scan: Scan, params: MapParams, threads: int = 1) -> PreparedSca
     return PreparedScan(packed, steps, time.perf_counter() - t0, int(scan.points.shape[0]), merged, brick_runs=runs)
 
 
+def prepare_scan_bricks(scan: Scan, params: MapParams, threads: int = 1) -> PreparedScan:
+    """prepare_scan, its updates kept as bricks (`bricks`; PreparedScan.updates() expands them):
+    the octree applies them from the masks, without a list of per-voxel updates."""
+    t0 = time.perf_counter()
+    merged_bricks, steps, merged = cast_scan(scan, params, threads)
+    packed = np.empty(0, dtype=np.int64) if merged_bricks is None else None
+    return PreparedScan(packed, steps, time.perf_counter() - t0, int(scan.points.shape[0]), merged,
+                        bricks=merged_bricks, threads=threads)
+
+
 def warm_up_kernels(merging: bool = False) -> None:
     """Load (or compile, first time on a machine) the kernels a build runs on a tiny scan, so
     the JIT cost is reported apart from the first scan's latency (each costs ~5-10 ms)."""
@@ -164,6 +212,7 @@ def warm_up_kernels(merging: bool = False) -> None:
     params = MapParams(resolution=0.5, merge_rays=merging)
     tree = ShardedOctree()
     tree.apply(scan_updates(scan, params)[0], K.ADD, hit=0.85, miss=-0.4, cmin=-2.0, cmax=3.5)
+    tree.apply_masks(cast_scan(scan, params)[0], hit=0.85, miss=-0.4, cmin=-2.0, cmax=3.5)
     balanced_cuts(scan.points, scan.origin, 2)
     tree.leaves()
 
@@ -199,7 +248,7 @@ class OctreeMap:
 
     def prepare(self, scan: Scan) -> PreparedScan:
         """Ray casting: independent of the map, so it may run ahead on another thread."""
-        prepared = prepare_scan(scan, self.params, self.threads)
+        prepared = prepare_scan_bricks(scan, self.params, self.threads)
         prepared.stamp_ns, prepared.index, prepared.source = scan.stamp_ns, scan.index, scan.source
         return prepared
 
@@ -230,9 +279,15 @@ class OctreeMap:
         t0 = time.perf_counter()
         if self.decay_half_life is not None:
             self.decay_to(prepared.stamp_ns, prepared.index, prepared.source)
-        self.apply_updates(prepared.packed, brick_runs=prepared.brick_runs)
+        if prepared.packed is None:  # straight from the brick masks (no per-voxel list: 8 bytes a voxel)
+            s = self.sensor
+            updated = self.tree.apply_masks(prepared.bricks, hit=s.hit_log, miss=s.miss_log, cmin=s.clamp_min_log,
+                                            cmax=s.clamp_max_log)
+        else:
+            self.apply_updates(prepared.packed, brick_runs=prepared.brick_runs)
+            updated = int(prepared.packed.shape[0])
         return IntegrateTiming(raycast=prepared.seconds, update=time.perf_counter() - t0,
-                               voxel_updates=int(prepared.packed.shape[0]), ray_steps=prepared.steps,
+                               voxel_updates=updated, ray_steps=prepared.steps,
                                rays=prepared.rays, merged_rays=prepared.merged_rays)
 
     def integrate(self, scan: Scan) -> IntegrateTiming:

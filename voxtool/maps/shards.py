@@ -251,6 +251,23 @@ class ShardedOctree:
         run_parts(self.threads, lambda r: K.apply_bricks(vals, slots, fresh, init, starts, r[0], r[1], items, values,
                                                          mode, *consts), runs)
 
+    def apply_masks(self, bricks, hit=0.0, miss=0.0, cmin=0.0, cmax=0.0) -> int:
+        """apply(mode ADD) of one scan's updates kept as merged brick masks (maps.octree.ScanBricks),
+        straight from the masks; returns how many voxels were updated."""
+        n = bricks.distinct.shape[0]
+        if n == 0:
+            return 0
+        self._derived = None
+        slots, fresh, init = self._slots_for(bricks.distinct)
+        s = self.scale  # a decaying map's updates, in its stored units (fade)
+        consts = (np.float32(hit / s), np.float32(miss / s), np.float32(cmin / s), np.float32(cmax / s),
+                  np.float32(self.forget / s))
+        self._unsettled |= self.forget > 0  # an update may leave a voxel below forget
+        vals = self.arena.vals
+        return sum(run_parts(self.threads, lambda r: K.apply_masks(vals, slots, fresh, init, bricks.touched, bricks.occ,
+                                                                   bricks.order, bricks.firsts, r[0], r[1], *consts),
+                             bricks.runs(self.threads)))
+
     def fade(self, factor: float, forget: float) -> None:
         """A decay step: every log-odds times `factor`, then a voxel whose |log-odds| is below
         `forget` is forgotten (unknown); reading the map is a step of factor 1. Lazily: the
