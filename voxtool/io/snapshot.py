@@ -33,6 +33,7 @@ MAX_ARRAY_BYTES = 1 << 34  # 16 GiB: a declared size beyond this is refused befo
 DTYPES = {"int64": "<i8", "uint8": "u1", "float32": "<f4", "int32": "<i4", "uint16": "<u2", "uint32": "<u4",
           "float64": "<f8", "int16": "<i2", "uint64": "<u8"}
 _FIXED = struct.Struct("<8sHHI")
+ALL_CORES_FROM = 48 << 20  # bytes: a streamed array this large is compressed on every core
 
 
 @dataclass
@@ -64,10 +65,10 @@ def _stored(array: np.ndarray, compressor, codec: str) -> bytes:
 def _stored_chunked(group: ChunkedArrays, level: int, codec: str) -> dict[str, tuple[bytes, int]]:
     """name -> (stored bytes, raw bytes) of every array of a group, in one pass over its chunks
     (a compressor each: one zstd context streams one frame at a time). The largest array's
-    stream has every core, the others one worker each: a multi-threaded stream holds ~45 MiB of
-    jobs per worker, and the bytes do not depend on the workers."""
+    stream has every core when it is large, the others one worker each: a multi-threaded stream
+    holds ~45 MiB of jobs per worker, and the bytes do not depend on the workers."""
     sizes = [group.length * np.dtype(DTYPES[d]).itemsize for d in group.dtypes]
-    largest = int(np.argmax(sizes))
+    largest = int(np.argmax(sizes)) if max(sizes) >= ALL_CORES_FROM else -1
     streams = [zstandard.ZstdCompressor(level=level, threads=-1 if k == largest else 1).compressobj(size=n)
                if codec == "zstd" else None for k, n in enumerate(sizes)]
     out: list[list[bytes]] = [[] for _ in group.names]
