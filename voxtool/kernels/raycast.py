@@ -140,7 +140,20 @@ def _in_brick(kx, ky, kz):
 def _brick_of(kx, ky, kz, tab, bricks, n_bricks, tmask):
     """Index of the brick holding key (kx, ky, kz), added when new: (index, brick count), index
     -1 when the buffers are full."""
-    brick = morton3(kx >> 3, ky >> 3, kz >> 3)
+    return _brick_index(morton3(kx >> 3, ky >> 3, kz >> 3), tab, bricks, n_bricks, tmask)
+
+
+# the x, y and z bits of a brick code (13 bits an axis): a ray steps its brick code with
+# dilated arithmetic too, instead of interleaving three keys at every brick it enters
+_BRICK_X = 0x249249249249 & ((1 << 39) - 1)
+_BRICK_Y = _BRICK_X << 1
+_BRICK_Z = _BRICK_X << 2
+
+
+@njit(cache=True, inline="always")
+def _brick_index(brick, tab, bricks, n_bricks, tmask):
+    """Index of brick code `brick` in the scan's brick table, added when new: (index, brick
+    count), index -1 when the buffers are full."""
     s = _brick_slot(brick, tmask)
     while True:
         b = tab[s, 1]
@@ -184,9 +197,10 @@ def _make_scan_bricks(stop_near_hits: bool):
         coordinates; origin: (3,) float32; max_range < 0 means unlimited. Coordinates must already
         be checked to lie in key range. near_keys / near_bits: the near-hit table (only read by
         the stopping variant).
-        The DDA state lives in scalars (registers), the in-brick Morton index is stepped with
-        dilated arithmetic, and the brick table is consulted only when a step crosses into another
-        brick, so a step is a few compares and one OR into a mask that stays in cache.
+        The DDA state lives in scalars (registers), the in-brick Morton index and the brick code
+        are stepped with dilated arithmetic, and the brick table is consulted only when a step
+        crosses into another brick, so a step is a few compares and one OR into a mask that stays
+        in cache.
         """
         tmask = tab.shape[0] - 1
         nmask = near_keys.shape[0] - 1
@@ -194,6 +208,7 @@ def _make_scan_bricks(stop_near_hits: bool):
         okx = _coord_key(origin[0], res_factor)
         oky = _coord_key(origin[1], res_factor)
         okz = _coord_key(origin[2], res_factor)
+        origin_brick = morton3(okx >> 3, oky >> 3, okz >> 3)
         n_bricks = 0
         steps = 0
         for i in range(points.shape[0]):
@@ -211,12 +226,13 @@ def _make_scan_bricks(stop_near_hits: bool):
                 continue
             # free voxels from the origin's up to (not including) the end voxel (computeRayKeys)
             kx, ky, kz = okx, oky, okz
-            b, n_bricks = _brick_of(kx, ky, kz, tab, bricks, n_bricks, tmask)
+            bc = origin_brick
+            b, n_bricks = _brick_index(bc, tab, bricks, n_bricks, tmask)
             if b < 0:
                 return -1, steps
             near = -1
             if stop_near_hits:
-                near = _near_row(near_keys, morton3(kx >> 3, ky >> 3, kz >> 3), nmask)
+                near = _near_row(near_keys, bc, nmask)
             v = _in_brick(kx, ky, kz)
             bx = 0 if sx > 0 else 7  # the key & 7 that starts a new brick when stepping along x
             by = 0 if sy > 0 else 7
@@ -231,39 +247,48 @@ def _make_scan_bricks(stop_near_hits: bool):
                     touched[b, v >> 6] |= np.int64(1) << (v & 63)
                 steps += 1
                 # advance (Amanatides-Woo with OctoMap's tie-breaking and stop rules)
+                crossed = False
                 if tx < ty:
                     if tx < tz:
                         kx += sx
                         tx += ux
                         v = _morton_step(v, _X9, sx > 0)
-                        crossed = (kx & 7) == bx
+                        if (kx & 7) == bx:
+                            bc = _morton_step(bc, _BRICK_X, sx > 0)
+                            crossed = True
                     else:
                         kz += sz
                         tz += uz
                         v = _morton_step(v, _Z9, sz > 0)
-                        crossed = (kz & 7) == bz
+                        if (kz & 7) == bz:
+                            bc = _morton_step(bc, _BRICK_Z, sz > 0)
+                            crossed = True
                 else:
                     if ty < tz:
                         ky += sy
                         ty += uy
                         v = _morton_step(v, _Y9, sy > 0)
-                        crossed = (ky & 7) == by
+                        if (ky & 7) == by:
+                            bc = _morton_step(bc, _BRICK_Y, sy > 0)
+                            crossed = True
                     else:
                         kz += sz
                         tz += uz
                         v = _morton_step(v, _Z9, sz > 0)
-                        crossed = (kz & 7) == bz
+                        if (kz & 7) == bz:
+                            bc = _morton_step(bc, _BRICK_Z, sz > 0)
+                            crossed = True
                 to_end -= 1
                 if to_end == 0 and kx == ekx and ky == eky and kz == ekz:
                     break
                 if min(tx, min(ty, tz)) > length64:
                     break
                 if crossed:
-                    b, n_bricks = _brick_of(kx, ky, kz, tab, bricks, n_bricks, tmask)
+                    b, n_bricks = _brick_index(bc, tab, bricks, n_bricks, tmask)
                     if b < 0:
                         return -1, steps
                     if stop_near_hits:
-                        near = _near_row(near_keys, morton3(kx >> 3, ky >> 3, kz >> 3), nmask)
+                        near = _near_row(near_keys, bc, nmask)
         return n_bricks, steps
 
     return scan_bricks
