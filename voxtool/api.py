@@ -46,7 +46,6 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     frames, as a packet log. `per_scan`: add each scan's latency, stamp and map bytes
     ("per_scan", the series of `build --plot`)."""
     from voxtool.atomic import check_writable
-    from voxtool.io.mapfile import save_map
     from voxtool.maps import make_backend
     from voxtool.pipeline import build
 
@@ -79,19 +78,7 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     if output is not None:
         info = {"source": str(source), "source_kind": stream.kind, "source_options": options.__dict__,
                 **{k: counts[k] for k in RECORDED_COUNTS}, "last_stamp_ns": report.last_stamp_ns or 0}
-        arrays = backend.state_arrays()
-        leaves = arrays.get("leaf_codes")
-        counter = None
-        if isinstance(leaves, ChunkedArrays):  # the tree's leaves, a chunk at a time: counted as written
-            from voxtool.stats import TreeStats
-
-            counter = TreeStats(backend.sensor.threshold_log, getattr(backend, "canonical_leaves", False))
-            arrays = dict.fromkeys(leaves.names, replace(leaves, chunks=lambda: counter.feed(leaves.chunks())))
-        t0 = time.perf_counter()
-        save_map(output, backend, info, arrays)
-        t_write = time.perf_counter() - t0
-        if counter is not None:
-            tree, t_stats, t_write = counter.result(backend.params.resolution), counter.seconds, t_write - counter.seconds
+        tree, t_stats, t_write = save_counted(output, backend, info)
     t0 = time.perf_counter()
     result = backend_stats(backend, tree)
     t_stats += time.perf_counter() - t0
@@ -110,6 +97,28 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
                                open=round(t_loop_end - t_start - report.time_total - report.time_jit, 6),
                                stats=round(t_stats, 6))
     return result
+
+
+def save_counted(output: str | os.PathLike, backend: MapBackend, info: dict) -> tuple[dict | None, float, float]:
+    """save_map, counting the tree's figures (tree_stats) in the same pass when the backend's
+    leaves go out a chunk at a time: (those figures, None otherwise; seconds counting; seconds
+    writing besides)."""
+    from voxtool.io.mapfile import save_map
+
+    arrays = backend.state_arrays()
+    leaves = arrays.get("leaf_codes")
+    counter = None
+    if isinstance(leaves, ChunkedArrays):
+        from voxtool.stats import TreeStats
+
+        counter = TreeStats(backend.sensor.threshold_log, getattr(backend, "canonical_leaves", False))
+        arrays = dict.fromkeys(leaves.names, replace(leaves, chunks=lambda: counter.feed(leaves.chunks())))
+    t0 = time.perf_counter()
+    save_map(output, backend, info, arrays)
+    seconds = time.perf_counter() - t0
+    if counter is None:
+        return None, 0.0, seconds
+    return counter.result(backend.params.resolution), counter.seconds, seconds - counter.seconds
 
 
 def process_age() -> float | None:
@@ -199,13 +208,12 @@ def build_one_map(sources: list, options: SourceOptions, params: MapParams, sens
             check_writable(output)
         backend, report = distributed_build(client, [str(s) for s in sources], options, params, sensor,
                                             shard_depth=depth, progress=progress)
-        result = backend_stats(backend)
-        result.update(report)
+        tree = None
         if output is not None:
-            from voxtool.io.mapfile import save_map
-
-            save_map(output, backend, {**info, **{k: report[k] for k in RECORDED_COUNTS},
-                                       "last_stamp_ns": report.get("last_stamp_ns") or 0})
+            tree = save_counted(output, backend, {**info, **{k: report[k] for k in RECORDED_COUNTS},
+                                                  "last_stamp_ns": report.get("last_stamp_ns") or 0})[0]
+        result = backend_stats(backend, tree)
+        result.update(report)
         return result
     from voxtool.io import sharded as S
 

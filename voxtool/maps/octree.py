@@ -130,17 +130,6 @@ class ScanBricks:
         return out, starts
 
 
-def bricks_to_updates(bricks: np.ndarray, touched: np.ndarray, occ: np.ndarray, threads: int,
-                      group_of=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Morton-sorted voxel updates (code << 1 | occupied) of a scan's bricks, with the distinct
-    brick codes and where each brick's updates start (the runs the map update works by).
-    group_of: each group's updates are one slice of the output (a Dask cast's partitions,
-    without a copy; ScanBricks.merge)."""
-    merged = ScanBricks.merge(bricks, touched, occ, group_of)
-    out, starts = merged.updates(threads)
-    return out, merged.distinct, starts
-
-
 def trace_scan(scan: Scan, params: MapParams, threads: int = 1, near_hits=None) -> list:
     """A scan's rays traced on `threads` threads, in runs of equal work: per run, (brick codes
     sorted, touched masks, endpoint masks, DDA steps) (_trace_part; near_hits: clean's stops).
