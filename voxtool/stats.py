@@ -79,6 +79,7 @@ class TreeStats:
             yield chunk
 
     def result(self, resolution: float) -> dict:
+        """The figures, once every leaf is added (closing the counts: ask once)."""
         from voxtool.kernels.octree import pruned_tree_close
 
         out = self.summary.result(resolution)
