@@ -57,8 +57,13 @@ class ChunkedArrays:
     chunks: Callable[[], Iterable[tuple[np.ndarray, ...]]]
 
 
-def _stored(array: np.ndarray, compressor, codec: str) -> bytes:
-    raw = memoryview(np.ascontiguousarray(array, dtype=DTYPES[np.dtype(array.dtype).name])).cast("B")  # no copy
+def _raw(array: np.ndarray, dtype_name: str) -> memoryview:
+    """The array's bytes as stored (little endian), without a copy where they already are."""
+    return memoryview(np.ascontiguousarray(array, dtype=DTYPES[dtype_name])).cast("B")
+
+
+def _stored(raw: memoryview, compressor, codec: str) -> bytes:
+    """Bytes as the payload holds them; `compressor`: a zstd compressor or stream (compress())."""
     return compressor.compress(raw) if codec == "zstd" else raw.tobytes()
 
 
@@ -74,8 +79,7 @@ def _stored_chunked(group: ChunkedArrays, level: int, codec: str) -> dict[str, t
     out: list[list[bytes]] = [[] for _ in group.names]
     for pieces in group.chunks():
         for k, piece in enumerate(pieces):
-            raw = memoryview(np.ascontiguousarray(piece, dtype=DTYPES[group.dtypes[k]])).cast("B")
-            out[k].append(streams[k].compress(raw) if codec == "zstd" else raw.tobytes())
+            out[k].append(_stored(_raw(piece, group.dtypes[k]), streams[k], codec))
     for k, stream in enumerate(streams):
         if stream is not None:
             out[k].append(stream.flush())
@@ -100,7 +104,7 @@ def _snapshot_parts(header: dict, arrays: dict[str, np.ndarray | ChunkedArrays],
             dtype_name, shape = np.dtype(array.dtype).name, list(array.shape)
             if dtype_name not in DTYPES:
                 raise ValueError(f"array {name}: dtype {dtype_name} not storable")
-            stored = _stored(array, compressor, codec)
+            stored = _stored(_raw(array, dtype_name), compressor, codec)
             raw_bytes = array.nbytes
         table.append({"name": name, "dtype": dtype_name, "shape": shape, "codec": codec,
                       "offset": offset, "stored_bytes": len(stored), "raw_bytes": raw_bytes,
