@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from voxtool.kernels.raycast import lowest_bit
+from voxtool.kernels.raycast import brick_word, lowest_bit
 
 BRICK = 512  # voxels per brick
 BRICK_BITS = 9  # brick code = voxel code >> 9
@@ -110,11 +110,7 @@ def apply_masks(vals, slots, fresh, init, touched, occ, order, firsts, lo, hi, h
             for j in range(BRICK):
                 vals[base + j] = init[k]
         for w in range(8):
-            x = np.int64(0)
-            o = np.int64(0)
-            for j in range(firsts[k], firsts[k + 1]):
-                x |= touched[order[j], w]
-                o |= occ[order[j], w]
+            x, o = brick_word(touched, occ, order, firsts[k], firsts[k + 1], w)
             at0 = base + (w << 6)
             while x != 0:
                 bit = lowest_bit(x)

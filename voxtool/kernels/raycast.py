@@ -353,6 +353,18 @@ def brick_voxels(touched, order, firsts, k0, k1, counts):
         counts[k] = total
 
 
+@njit(cache=True, inline="always")
+def brick_word(touched, occ, order, first, end, w):
+    """Word w of a distinct brick's touched and endpoint masks: the OR of its rows
+    order[first:end] (a brick several ray runs filled has several)."""
+    x = np.int64(0)
+    o = np.int64(0)
+    for j in range(first, end):
+        x |= touched[order[j], w]
+        o |= occ[order[j], w]
+    return x, o
+
+
 @njit(cache=True, nogil=True)
 def expand_bricks(codes, touched, occ, order, firsts, k0, k1, starts, out):
     """The voxels of distinct bricks k0..k1 (brick k: code codes[k], entries
@@ -362,11 +374,7 @@ def expand_bricks(codes, touched, occ, order, firsts, k0, k1, starts, out):
         n = starts[k]
         base = codes[k] << BRICK_BITS
         for w in range(8):
-            x = np.int64(0)
-            o = np.int64(0)
-            for j in range(firsts[k], firsts[k + 1]):
-                x |= touched[order[j], w]
-                o |= occ[order[j], w]
+            x, o = brick_word(touched, occ, order, firsts[k], firsts[k + 1], w)
             word = (base | (w << 6)) << 1
             while x != 0:
                 tz = lowest_bit(x)
