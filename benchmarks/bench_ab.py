@@ -25,6 +25,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from report import write_report
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -94,13 +96,7 @@ def main() -> None:
                     print(json.dumps(rows[-1]), file=sys.stderr)
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(base)], check=False)
-    cols = list(rows[0])
-    print(" | ".join(cols))
-    for r in rows:
-        print(" | ".join(str(r[c]) for c in cols))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({"base": args.base, "runs": args.runs, "rows": rows}, indent=1))
-    print(f"wrote {args.out}")
+    print(f"wrote {write_report(rows, list(rows[0]), args.out, base=args.base, runs=args.runs)}")
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from report import write_report
 
 DATASETS = [("kaist03", 0.2), ("quick_shack", 0.1), ("norlab", 0.2)]
 SCALE_RESOLUTIONS = {"kaist03": (0.4, 0.2, 0.1), "quick_shack": (0.2, 0.1, 0.05), "norlab": (0.4, 0.2, 0.1)}
@@ -179,12 +180,7 @@ def main() -> None:
     cols = ["dataset", "threads", "octomap_insert_s", "voxtool_command_s", "speedup", "voxtool_loop_s",
             "ray_steps_per_s", "updates_per_s", "octomap_peak_rss_mib", "voxtool_peak_rss_mib", "occupied_voxels",
             "occupied_differ", "free_voxels", "free_differ"]
-    print(" | ".join(cols))
-    for r in rows:
-        print(" | ".join(str(r[c]) for c in cols))
-    Path(args.out).write_text(json.dumps({"machine": os.uname().nodename, "cpus": os.cpu_count(), "rows": rows},
-                                         indent=2))
-    print(f"wrote {args.out}")
+    print(f"wrote {write_report(rows, cols, args.out, machine=os.uname().nodename, cpus=os.cpu_count())}")
 
 
 def scale(args) -> None:
@@ -228,11 +224,8 @@ def scale(args) -> None:
     cols = ["dataset", "resolution", "scans", "ray_steps", "leaves", "command_s", "ns_per_step", "loop_ns_per_step",
             "startup_s", "total_s", "loop_read_s", "loop_raycast_s", "loop_update_s", "stats_s", "write_s",
             "exit_and_rest_s", "peak_rss_mib", "bytes_per_leaf", "octomap_insert_s", "octomap_peak_rss_mib", "speedup"]
-    print(" | ".join(cols))
-    for r in rows:
-        print(" | ".join(str(r[c]) for c in cols))
-    out = Path(args.out if args.out != "bench-results/octree.json" else "bench-results/octree_scale.json")
-    out.write_text(json.dumps({"machine": os.uname().nodename, "cpus": os.cpu_count(), "rows": rows}, indent=2))
+    out = write_report(rows, cols, args.out if args.out != "bench-results/octree.json" else "bench-results/octree_scale.json",
+                       machine=os.uname().nodename, cpus=os.cpu_count())
     plot_scale(rows, out.with_suffix(".png"))
     print(f"wrote {out} and {out.with_suffix('.png')}")
 

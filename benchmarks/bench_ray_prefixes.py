@@ -22,6 +22,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from report import write_report  # noqa: E402
+
 from tests.reference import ray_keys  # noqa: E402
 
 
@@ -66,13 +68,7 @@ def main() -> None:
             start = min(start, max(n - args.rays, 0))
             rows.append(shares(scan.points, scan.origin, resolution, start, min(args.rays, n)))
             print(json.dumps(rows[-1]), file=sys.stderr)
-    cols = list(rows[0])
-    print(" | ".join(cols))
-    for r in rows:
-        print(" | ".join(str(r[c]) for c in cols))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({"dataset": args.dataset, "scan": args.scan, "rows": rows}, indent=1))
-    print(f"wrote {args.out}")
+    print(f"wrote {write_report(rows, list(rows[0]), args.out, dataset=args.dataset, scan=args.scan)}")
 
 
 if __name__ == "__main__":
