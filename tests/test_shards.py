@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from test_octree import world_scans
 
 from voxtool.config import MapParams, SensorModel
@@ -173,3 +175,12 @@ def test_updates_from_brick_masks_equal_the_per_voxel_updates(tmp_path, decay):
             assert timing.voxel_updates == prepared.updates().shape[0]
         maps.append(m)
     assert same_leaves(*maps)
+
+
+@given(st.integers(-(2**63), 2**63 - 1).filter(lambda x: x != 0))
+def test_lowest_bit_is_the_index_of_the_lowest_set_bit(x):
+    """The update walks a mask's set bits with it (kernels.octree.apply_masks): every bit
+    position, the sign bit included."""
+    from voxtool.kernels.raycast import lowest_bit
+
+    assert lowest_bit(np.int64(x)) == ((x & -x).bit_length() - 1)

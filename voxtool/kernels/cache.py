@@ -39,11 +39,7 @@ def cache_insert(packed, start, count, cell_code, cell_val, slots, seed, hit, mi
             v = (np.float32(0.0) if prior != prior else prior) + upd
             cell_code[base + c] = code
             count[b] = c + 1
-        if v < cmin:
-            v = cmin
-        elif v > cmax:
-            v = cmax
-        cell_val[base + j] = v
+        cell_val[base + j] = min(max(v, cmin), cmax)  # no branch: a free voxel often reaches the clamp
     return hits, packed.shape[0]
 
 

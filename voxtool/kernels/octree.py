@@ -85,12 +85,7 @@ def apply_bricks(vals, slots, fresh, init, starts, lo, hi, items, values, mode, 
                 v = vals[at]
                 if v != v:
                     v = np.float32(0.0)
-                v += hit if (item & 1) else miss
-                if v < cmin:
-                    v = cmin
-                elif v > cmax:
-                    v = cmax
-                vals[at] = v
+                vals[at] = min(max(v + (hit if (item & 1) else miss), cmin), cmax)  # no branch on the clamp
         else:
             for i in range(starts[k], starts[k + 1]):
                 vals[base + (items[i] & (BRICK - 1))] = values[i]
@@ -118,12 +113,8 @@ def apply_masks(vals, slots, fresh, init, touched, occ, order, firsts, lo, hi, h
                 v = vals[at]
                 if v != v or abs(v) < forget:  # unknown, or forgotten by a decay step (forget 0: never)
                     v = np.float32(0.0)
-                v += hit if (o >> bit) & 1 else miss
-                if v < cmin:
-                    v = cmin
-                elif v > cmax:
-                    v = cmax
-                vals[at] = v
+                # min/max, not branches: a free voxel's update often reaches the clamp, unpredictably
+                vals[at] = min(max(v + (hit if (o >> bit) & 1 else miss), cmin), cmax)
                 n += 1
                 x &= x - 1  # that bit done
     return n
