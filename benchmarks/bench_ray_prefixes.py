@@ -3,13 +3,16 @@ casting shared first voxels once (near the sensor, where most steps repeat) coul
 exact method.
 
     python benchmarks/bench_ray_prefixes.py [--data ../shared/data] [--dataset kaist03]
-                                            [--scan 10] [--rays 3000] [--out bench-results/ray_prefixes.json]
+                                            [--scan 10] [--rays 3000] [--whole-scan]
+                                            [--out bench-results/ray_prefixes.json]
 
 For runs of consecutive rays (the sensor's own point order, three places in the scan) at two
 resolutions, each ray's voxel sequence as OctoMap casts it (tests/reference.py's DDA, written
 apart from voxtool's kernels): the share of all steps that lie in the longest common prefix with
-the ray before, and with the best of the 128 rays before; and the scan's distinct voxels per
-step (what OctoMap's key set keeps). Prints a table and writes JSON.
+the ray before, and with the best of the 128 rays before; the distinct voxels per step (what
+OctoMap's key set keeps); and the steps into a 4x4x4 block whose voxels earlier steps had all
+marked (what skipping saturated blocks could save). --whole-scan adds the last two over every
+ray of the scan. Prints a table and writes JSON.
 """
 
 from __future__ import annotations
@@ -44,7 +47,33 @@ def shares(points, origin, resolution: float, start: int, rays: int, window: int
     distinct = len({k for p in paths for k in p})
     return {"start": start, "rays": len(paths), "resolution": resolution, "steps": steps,
             "shared_with_previous": round(before / steps, 4), f"shared_with_best_of_{window}": round(best / steps, 4),
-            "distinct_voxels_per_step": round(distinct / steps, 4)}
+            "distinct_voxels_per_step": round(distinct / steps, 4), "in_full_block": round(in_full_blocks(paths) / steps, 4)}
+
+
+def in_full_blocks(paths: list) -> int:
+    """Steps into a 4x4x4 block (one 64-bit word of a brick's mask) whose 64 voxels earlier
+    steps of the scan had all marked already: what a ray could skip without stepping, if
+    skipping a block cost nothing."""
+    seen, per_block, full = set(), {}, 0
+    for path in paths:
+        for k in path:
+            block = (k[0] >> 2, k[1] >> 2, k[2] >> 2)
+            filled = per_block.get(block, 0)
+            full += filled == 64
+            if k not in seen:
+                seen.add(k)
+                per_block[block] = filled + 1
+    return full
+
+
+def whole_scan(points, origin, resolution: float) -> dict:
+    """Every ray of the scan: its repeated steps, and those in a block already full."""
+    paths = [ray_keys(origin, points[i], resolution) for i in range(points.shape[0])]
+    steps = sum(len(p) for p in paths)
+    distinct = len({k for p in paths for k in p})
+    return {"start": 0, "rays": len(paths), "resolution": resolution, "steps": steps, "shared_with_previous": None,
+            "shared_with_best_of_128": None, "distinct_voxels_per_step": round(distinct / steps, 4),
+            "in_full_block": round(in_full_blocks(paths) / steps, 4)}
 
 
 def main() -> None:
@@ -55,6 +84,8 @@ def main() -> None:
     ap.add_argument("--dataset", default="kaist03")
     ap.add_argument("--scan", type=int, default=10)
     ap.add_argument("--rays", type=int, default=3000)
+    ap.add_argument("--whole-scan", action="store_true",
+                    help="also every ray of the scan (pure Python: about 10 s a resolution)")
     ap.add_argument("--out", default="bench-results/ray_prefixes.json")
     args = ap.parse_args()
     source = Path(args.data) / args.dataset / "pcd"
@@ -67,6 +98,9 @@ def main() -> None:
         for start in (0, n // 3, 2 * n // 3):
             start = min(start, max(n - args.rays, 0))
             rows.append(shares(scan.points, scan.origin, resolution, start, min(args.rays, n)))
+            print(json.dumps(rows[-1]), file=sys.stderr)
+        if args.whole_scan:
+            rows.append(whole_scan(scan.points, scan.origin, resolution))
             print(json.dumps(rows[-1]), file=sys.stderr)
     print(f"wrote {write_report(rows, list(rows[0]), args.out, dataset=args.dataset, scan=args.scan)}")
 
