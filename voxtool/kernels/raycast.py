@@ -29,8 +29,8 @@ BRICK_BITS = 9  # a brick is the 8x8x8 voxels sharing code >> 9; its voxels are 
 @njit(cache=True, inline="always")
 def lowest_bit(x):
     """Index of the lowest set bit of x (64 for 0): LLVM's count of trailing zeros, one
-    instruction (a de Bruijn multiply and table load made the update of a scan's brick masks,
-    kernels.octree.apply_masks, a fifth slower: docs/design/octree.md)."""
+    instruction (the de Bruijn multiply and table load it replaces cost the update of a scan's
+    brick masks, kernels.octree.apply_masks, a fifth of its time: docs/design/octree.md)."""
     return trailing_zeros(x)
 
 
