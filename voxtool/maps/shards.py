@@ -242,14 +242,19 @@ class ShardedOctree:
         if mode != K.ADD:
             self.settle()
         slots, fresh, init = self._slots_for(bricks)
-        s = self.scale  # a decaying map's updates, in its stored units (fade)
-        consts = (np.float32(hit / s), np.float32(miss / s), np.float32(cmin / s), np.float32(cmax / s),
-                  np.float32(self.forget / s))
-        self._unsettled |= self.forget > 0  # an update may leave a voxel below forget
+        consts = self._update_consts(hit, miss, cmin, cmax)
         runs = balanced_runs(starts, 1 if n < SMALL_BATCH else self.threads)
         vals = self.arena.vals
         run_parts(self.threads, lambda r: K.apply_bricks(vals, slots, fresh, init, starts, r[0], r[1], items, values,
                                                          mode, *consts), runs)
+
+    def _update_consts(self, hit: float, miss: float, cmin: float, cmax: float) -> tuple:
+        """The kernels' (hit, miss, cmin, cmax, forget) for the updates about to be applied: a
+        decaying map's, in its stored units (fade); an update may leave a voxel below forget."""
+        s = self.scale
+        self._unsettled |= self.forget > 0
+        return (np.float32(hit / s), np.float32(miss / s), np.float32(cmin / s), np.float32(cmax / s),
+                np.float32(self.forget / s))
 
     def apply_masks(self, bricks, hit=0.0, miss=0.0, cmin=0.0, cmax=0.0) -> int:
         """apply(mode ADD) of one scan's updates kept as merged brick masks (maps.octree.ScanBricks),
@@ -259,10 +264,7 @@ class ShardedOctree:
             return 0
         self._derived = None
         slots, fresh, init = self._slots_for(bricks.distinct)
-        s = self.scale  # a decaying map's updates, in its stored units (fade)
-        consts = (np.float32(hit / s), np.float32(miss / s), np.float32(cmin / s), np.float32(cmax / s),
-                  np.float32(self.forget / s))
-        self._unsettled |= self.forget > 0  # an update may leave a voxel below forget
+        consts = self._update_consts(hit, miss, cmin, cmax)
         vals = self.arena.vals
         return sum(run_parts(self.threads, lambda r: K.apply_masks(vals, slots, fresh, init, bricks.touched, bricks.occ,
                                                                    bricks.order, bricks.firsts, r[0], r[1], *consts),
