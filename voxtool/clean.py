@@ -89,13 +89,11 @@ class VoidMap:
 
         t0 = time.perf_counter()
         points = scan.points
-        if self.params.max_range >= 0:  # a ray cut at max range hits nothing
-            reach = np.linalg.norm(points.astype(np.float64) - scan.origin, axis=1)
-            points = points[reach <= self.params.max_range]
         coords_to_keys(scan.origin[None, :], self.params.resolution, what=f"{scan.source}: sensor origin of scan")
-        keys = coords_to_keys(scan.points, self.params.resolution, what=f"{scan.source}: point")  # every ray's end
-        if points is not scan.points:
-            keys = coords_to_keys(points, self.params.resolution)
+        keys = coords_to_keys(points, self.params.resolution, what=f"{scan.source}: point")  # every ray's end
+        if self.params.max_range >= 0:  # a ray cut at max range hits nothing
+            kept = np.linalg.norm(points.astype(np.float64) - scan.origin, axis=1) <= self.params.max_range
+            points, keys = points[kept], keys[kept]
         hits = unique_codes(morton_encode(keys))
         size = 1 << max(10, int(hits.shape[0]).bit_length() + 1)  # bricks near hits: ~hits / 2
         while True:
