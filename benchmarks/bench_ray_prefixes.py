@@ -40,22 +40,31 @@ def common_prefix(a: list, b: list) -> int:
 
 def shares(points, origin, resolution: float, start: int, rays: int, window: int = 128) -> dict:
     paths = [ray_keys(origin, points[i], resolution) for i in range(start, start + rays)]
-    steps = sum(len(p) for p in paths)
+    counts = repeats(paths)
     before = sum(common_prefix(paths[i], paths[i - 1]) for i in range(1, len(paths)))
     best = sum(max(common_prefix(paths[i], paths[j]) for j in range(max(0, i - window), i))
                for i in range(1, len(paths)))
-    distinct = len({k for p in paths for k in p})
-    return {"start": start, "rays": len(paths), "resolution": resolution, "steps": steps,
-            "shared_with_previous": round(before / steps, 4), f"shared_with_best_of_{window}": round(best / steps, 4),
-            "distinct_voxels_per_step": round(distinct / steps, 4), "in_full_block": round(in_full_blocks(paths) / steps, 4)}
+    return {"start": start, "rays": len(paths), "resolution": resolution, "steps": counts["steps"],
+            "shared_with_previous": round(before / counts["steps"], 4),
+            f"shared_with_best_of_{window}": round(best / counts["steps"], 4), **counts}
 
 
-def in_full_blocks(paths: list) -> int:
-    """Steps into a 4x4x4 block (one 64-bit word of a brick's mask) whose 64 voxels earlier
-    steps of the scan had all marked already: what a ray could skip without stepping, if
-    skipping a block cost nothing."""
-    seen, per_block, full = set(), {}, 0
+def whole_scan(points, origin, resolution: float, window: int = 128) -> dict:
+    """Every ray of the scan: its repeated steps, and those in a block already full (the shared
+    prefixes are for runs of rays only: comparing every pair would take hours)."""
+    paths = [ray_keys(origin, points[i], resolution) for i in range(points.shape[0])]
+    counts = repeats(paths)
+    return {"start": 0, "rays": len(paths), "resolution": resolution, "steps": counts["steps"],
+            "shared_with_previous": None, f"shared_with_best_of_{window}": None, **counts}
+
+
+def repeats(paths: list) -> dict:
+    """The rays' steps; distinct voxels per step (what OctoMap's key set keeps); and the share of
+    steps into a 4x4x4 block (one 64-bit word of a brick's mask) whose 64 voxels earlier steps
+    had all marked already: what a ray could skip without stepping, if skipping cost nothing."""
+    seen, per_block, full, steps = set(), {}, 0, 0
     for path in paths:
+        steps += len(path)
         for k in path:
             block = (k[0] >> 2, k[1] >> 2, k[2] >> 2)
             filled = per_block.get(block, 0)
@@ -63,17 +72,8 @@ def in_full_blocks(paths: list) -> int:
             if k not in seen:
                 seen.add(k)
                 per_block[block] = filled + 1
-    return full
-
-
-def whole_scan(points, origin, resolution: float) -> dict:
-    """Every ray of the scan: its repeated steps, and those in a block already full."""
-    paths = [ray_keys(origin, points[i], resolution) for i in range(points.shape[0])]
-    steps = sum(len(p) for p in paths)
-    distinct = len({k for p in paths for k in p})
-    return {"start": 0, "rays": len(paths), "resolution": resolution, "steps": steps, "shared_with_previous": None,
-            "shared_with_best_of_128": None, "distinct_voxels_per_step": round(distinct / steps, 4),
-            "in_full_block": round(in_full_blocks(paths) / steps, 4)}
+    return {"steps": steps, "distinct_voxels_per_step": round(len(seen) / steps, 4),
+            "in_full_block": round(full / steps, 4)}
 
 
 def main() -> None:
