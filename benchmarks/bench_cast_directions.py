@@ -49,15 +49,13 @@ def steps_per_second(points: np.ndarray, repeat: int = 5) -> tuple[float, int, i
     near_keys, near_bits = np.full(2, -1, np.int64), np.zeros((2, 16), np.int64)
     best, steps, bricks = float("inf"), 0, 0
     for _ in range(repeat + 1):  # the first loads the kernel
-        buffers.tab.fill(-1)
-        buffers.touched[:] = 0
-        buffers.occ[:] = 0
         t0 = time.perf_counter()
         bricks, steps = scan_bricks(points, origin, RESOLUTION, -1.0, buffers.tab, buffers.touched, buffers.occ,
                                     buffers.bricks, near_keys, near_bits)
         best = min(best, time.perf_counter() - t0)
         if bricks < 0:
             raise SystemExit("brick buffers too small: use fewer --rays")
+        buffers.reset(bricks)
     return steps / best, int(steps), int(bricks)
 
 
