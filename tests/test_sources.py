@@ -228,7 +228,7 @@ def test_rosbag2_written_mcap_decodes(shared_data):
 
 def test_tf_is_interpolated_at_the_cloud_stamp():
     from voxtool.geometry import Pose, matrix_to_quat
-    from voxtool.sources.mcap_ros2 import STAMP_TOLERANCE_NS, StampedPoses
+    from voxtool.sources.tf import STAMP_TOLERANCE_NS, StampedPoses
 
     series = StampedPoses()
     series.add(1_000, Pose.from_quat((0, 0, 0), 1, 0, 0, 0))

@@ -37,6 +37,7 @@ class BuildReport:
     scan_latency: list[float] = field(default_factory=list)
     scan_stamps_ns: list[int] = field(default_factory=list)
     map_bytes: list[int] = field(default_factory=list)  # the map's used bytes after each scan
+    skipped: list[dict] = field(default_factory=list)  # scans the source could not read (--bad-scans skip)
 
     def per_scan(self) -> dict:
         """The series `build --plot` draws (not in to_dict: a long run has many scans)."""
@@ -47,6 +48,8 @@ class BuildReport:
         lat = np.array(self.scan_latency) * 1e3 if self.scan_latency else np.zeros(1)
         return {
             "scans": self.scans,
+            "scans_skipped": len(self.skipped),
+            "skipped_scans": self.skipped[:100],  # index and reason of the first 100
             "points": self.points,
             "points_dropped": self.points_dropped,
             "points_dropped_nonfinite": self.points_dropped_nonfinite,
@@ -163,4 +166,5 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
         blas.restore_original_limits()
         bar.close()
     report.time_total = time.perf_counter() - t_start
+    report.skipped = stream.bad.skipped
     return report

@@ -195,9 +195,12 @@ def _source_option_list() -> list:
         click.option("--poses", type=click.Path(path_type=Path), help="Pose file (TUM, index+TUM or KITTI), one row per scan file."),
         click.option("--no-viewpoint", is_flag=True,
                      help="PCD points are already in the world frame; take only the ray origin from VIEWPOINT/--poses."),
-        click.option("--topic", help="MCAP PointCloud2 topic (default: the only one)."),
-        click.option("--world-frame", default=None, help="MCAP /tf frame the map is built in (default: the root of the /tf tree above the cloud's frame)."),
-        click.option("--pose-topic", help="MCAP Odometry/PoseStamped topic giving the sensor pose (instead of /tf)."),
+        click.option("--topic", help="MCAP/bag PointCloud2 or LaserScan topic (default: the only one)."),
+        click.option("--world-frame", default=None, help="MCAP/bag /tf frame the map is built in (default: the root of the /tf tree above the cloud's frame)."),
+        click.option("--pose-topic", help="MCAP/bag Odometry/PoseStamped topic giving the sensor pose (instead of /tf)."),
+        click.option("--bad-scans", type=click.Choice(["fail", "skip"]), default="fail", show_default=True,
+                     help="A scan that cannot be read (a truncated file, a corrupt message): fail stops with its error; "
+                          "skip warns on one line per scan, counts it (scans_skipped in --json) and goes on."),
         click.option("--start", default=0, show_default=True, type=int, help="First scan index to use."),
         click.option("--stop", default=None, type=int, help="Stop before this scan index."),
         click.option("--every", default=1, show_default=True, type=int, help="Use every n-th scan."),
@@ -240,7 +243,8 @@ def source_setup(kw: dict):
     poses = kw.pop("poses")
     return SourceOptions(poses=str(poses) if poses else None, no_viewpoint=kw.pop("no_viewpoint"),
                          topic=kw.pop("topic"), world_frame=kw.pop("world_frame"), pose_topic=kw.pop("pose_topic"),
-                         start=kw.pop("start"), stop=kw.pop("stop"), every=kw.pop("every"), min_range=kw.pop("min_range"))
+                         start=kw.pop("start"), stop=kw.pop("stop"), every=kw.pop("every"), min_range=kw.pop("min_range"),
+                         bad_scans=kw.pop("bad_scans"))
 
 
 def scan_setup(kw: dict):

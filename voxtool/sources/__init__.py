@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import islice
 from pathlib import Path
 
@@ -16,6 +16,8 @@ import numpy as np
 from voxtool.errors import ParameterError, SourceError
 from voxtool.geometry import Pose
 from voxtool.sources.scan import Scan
+
+BAD_SCAN_POLICIES = ("fail", "skip")
 
 
 @dataclass(frozen=True)
@@ -29,20 +31,44 @@ class SourceOptions:
     stop: int | None = None
     every: int = 1
     min_range: float = 0.0
+    bad_scans: str = "fail"  # a scan that cannot be read: "fail" (stop with its error) or "skip" (warn, go on)
 
     def __post_init__(self) -> None:
+        if self.bad_scans not in BAD_SCAN_POLICIES:
+            raise ParameterError(f"--bad-scans {self.bad_scans!r}: one of {', '.join(BAD_SCAN_POLICIES)}")
         if self.start < 0 or (self.stop is not None and self.stop < self.start) or self.every < 1:
             raise ParameterError(f"scan slice start={self.start} stop={self.stop} every={self.every} is invalid")
 
 
+class BadScans:
+    """What a source does with a scan it cannot read (--bad-scans): 'fail' raises the scan's
+    error; 'skip' warns on one line, records the scan and its reason, and reading goes on."""
+
+    def __init__(self, policy: str) -> None:
+        self.policy = policy
+        self.skipped: list[dict] = []
+
+    def __call__(self, index: int, err: SourceError) -> None:
+        if self.policy == "fail":
+            raise err
+        import warnings
+
+        from voxtool.errors import VoxtoolWarning
+
+        self.skipped.append({"index": index, "reason": str(err)})
+        warnings.warn(f"skipped scan {index}: {err}", VoxtoolWarning, stacklevel=2)
+
+
 @dataclass
 class ScanStream:
-    """A source opened for reading: how many scans it will yield (if known) and the scans."""
+    """A source opened for reading: how many scans it will yield (if known), the scans, and
+    those skipped as unreadable so far (bad.skipped, with --bad-scans skip)."""
 
     kind: str
     path: Path
     count: int | None
     scans: Iterator[Scan]
+    bad: BadScans = field(default_factory=lambda: BadScans("fail"))
 
 
 def _selected(path: Path, total: int, options: SourceOptions) -> int:
@@ -135,30 +161,40 @@ def _open_cloud_files(path: Path, options: SourceOptions, suffix: str) -> ScanSt
     if suffix == ".ply" and rows is None:
         raise SourceError(f"{path}: PLY scans need a pose file (--poses)")
 
-    def scans() -> Iterator[Scan]:
+    bad = BadScans(options.bad_scans)
+
+    def read(i: int, f: Path) -> Scan:
         from voxtool.sources.pcd import read_pcd
         from voxtool.sources.ply import read_ply
 
-        for i, f in islice(enumerate(files), options.start, options.stop, options.every):
-            stamp = 0
-            if suffix == ".pcd":
-                cloud = read_pcd(f)
-                points = cloud.xyz
-                vp = cloud.viewpoint
-                pose = Pose.from_quat(vp[:3], vp[3], vp[4], vp[5], vp[6])
-            else:
-                points = read_ply(f)
-                pose = Pose.identity()
-            if rows is not None:
-                stamp_s, pose = rows[i]
-                stamp = int(round(stamp_s * 1e9)) if stamp_s is not None else 0
-            elif times is not None:
-                stamp = int(round(times[i] * 1e9))
-            if options.no_viewpoint:
-                pose = Pose(np.eye(3), pose.translation)
-            yield make_scan(points, pose, i, stamp, str(f), f.stat().st_size, options, options.no_viewpoint)
+        stamp = 0
+        if suffix == ".pcd":
+            cloud = read_pcd(f)
+            points = cloud.xyz
+            vp = cloud.viewpoint
+            pose = Pose.from_quat(vp[:3], vp[3], vp[4], vp[5], vp[6])
+        else:
+            points = read_ply(f)
+            pose = Pose.identity()
+        if rows is not None:
+            stamp_s, pose = rows[i]
+            stamp = int(round(stamp_s * 1e9)) if stamp_s is not None else 0
+        elif times is not None:
+            stamp = int(round(times[i] * 1e9))
+        if options.no_viewpoint:
+            pose = Pose(np.eye(3), pose.translation)
+        return make_scan(points, pose, i, stamp, str(f), f.stat().st_size, options, options.no_viewpoint)
 
-    return ScanStream(suffix.lstrip("."), path, _selected(path, len(files), options), scans())
+    def scans() -> Iterator[Scan]:
+        for i, f in islice(enumerate(files), options.start, options.stop, options.every):
+            try:
+                scan = read(i, f)
+            except SourceError as err:
+                bad(i, err)
+                continue
+            yield scan
+
+    return ScanStream(suffix.lstrip("."), path, _selected(path, len(files), options), scans(), bad)
 
 
 def _open_pcd(path: Path, options: SourceOptions) -> ScanStream:
@@ -172,14 +208,27 @@ def _open_ply(path: Path, options: SourceOptions) -> ScanStream:
 def _open_mcap(path: Path, options: SourceOptions) -> ScanStream:
     from voxtool.sources.mcap_ros2 import McapCloudSource
 
-    src = McapCloudSource(path, options.topic, options.world_frame, options.pose_topic)
+    return _log_stream("mcap", path, McapCloudSource(path, options.topic, options.world_frame, options.pose_topic),
+                       options)
+
+
+def _open_bag(path: Path, options: SourceOptions) -> ScanStream:
+    from voxtool.sources.rosbag import BagCloudSource
+
+    src = BagCloudSource(path, options.topic, options.world_frame, options.pose_topic)
+    return _log_stream("rosbag1" if src.path.suffix.lower() == ".bag" else "rosbag2", path, src, options)
+
+
+def _log_stream(kind: str, path: Path, src, options: SourceOptions) -> ScanStream:
+    """The scans of a log of ROS messages (an MCAP file, a bag): one source per message."""
+    bad = BadScans(options.bad_scans)
 
     def scans() -> Iterator[Scan]:
-        for i, points, pose, stamp, nbytes in src.scans(options.start, options.stop, options.every):
+        for i, points, pose, stamp, nbytes in src.scans(options.start, options.stop, options.every, bad):
             yield make_scan(points, pose, i, stamp, f"{path}#{i}", nbytes, options)
 
     count = _selected(path, src.count, options) if src.count is not None else None
-    return ScanStream("mcap", path, count, scans())
+    return ScanStream(kind, path, count, scans(), bad)
 
 
 def _open_graph(path: Path, options: SourceOptions) -> ScanStream:
@@ -199,15 +248,39 @@ SOURCES: dict[str, Callable[[Path, SourceOptions], ScanStream]] = {
     "ply": _open_ply,
     "mcap": _open_mcap,
     "graph": _open_graph,
+    "bag": _open_bag,
+    "db3": _open_bag,
 }
+BAG_DIRECTORY = "metadata.yaml"  # what makes a directory a ROS 2 bag
+
+
+def _scan_folders(path: Path, depth: int = 2) -> list[str]:
+    """Sub-folders of `path` (down to `depth` levels) that hold scans or are ROS 2 bags."""
+    found = []
+    for sub in sorted(p for p in path.iterdir() if p.is_dir()):
+        if (sub / BAG_DIRECTORY).is_file() or any(p.suffix.lower() in (".pcd", ".ply") for p in sub.iterdir()):
+            found.append(str(sub.relative_to(path)))
+        elif depth > 1:
+            found += [str(Path(sub.name) / f) for f in _scan_folders(sub, depth - 1)]
+    return found
 
 
 def detect_kind(path: Path) -> str:
     if path.is_dir():
+        if (path / BAG_DIRECTORY).is_file():
+            return "bag"
         kinds = {p.suffix.lower() for p in path.iterdir() if p.suffix.lower() in (".pcd", ".ply")}
         if len(kinds) != 1:
-            raise SourceError(f"{path}: directory must hold .pcd or .ply scans (found {sorted(kinds) or 'neither'})")
+            folders = _scan_folders(path) if not kinds else []
+            if folders:
+                shown = ", ".join(folders[:8]) + (f" and {len(folders) - 8} more" if len(folders) > 8 else "")
+                raise SourceError(f"{path}: holds no scans itself, but its sub-folders do: {shown} (give one of them, "
+                                  "or several with -o DIRECTORY for one map each)")
+            raise SourceError(f"{path}: directory must hold .pcd or .ply scans, or be a ROS 2 bag ({BAG_DIRECTORY}) "
+                              f"(found {sorted(kinds) or 'neither'})")
         return kinds.pop().lstrip(".")
+    if path.suffix.lower() == ".mcap" and (path.parent / BAG_DIRECTORY).is_file():
+        return "bag"  # the storage file of a ROS 2 bag: read through its metadata.yaml
     kind = path.suffix.lower().lstrip(".")
     if kind not in SOURCES:
         raise SourceError(f"{path}: unknown source type '{path.suffix}' (known: {', '.join(sorted(SOURCES))}, or a directory)")

@@ -1,0 +1,151 @@
+"""Sensor poses of ROS messages: the /tf tree (+ /tf_static), or a nav_msgs/Odometry or
+geometry_msgs/PoseStamped topic, interpolated at a cloud's stamp. Shared by every reader of ROS
+logs (MCAP files, ROS 1 and ROS 2 bags): they differ in how they read messages, not in this."""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from voxtool.errors import SourceError
+from voxtool.geometry import Pose, interpolate_pose
+
+STAMP_TOLERANCE_NS = 1_000_000  # a cloud this close outside a transform's time range uses its end value
+TF = "tf2_msgs/msg/TFMessage"
+POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped")
+
+
+def header_stamp(header) -> int:
+    """A std_msgs/Header's stamp in nanoseconds (ROS 1 and ROS 2 messages alike, as rosbags and
+    mcap-ros2 decode them: sec + nanosec)."""
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def _pose_of(translation, rotation) -> Pose:
+    return Pose.from_quat((translation.x, translation.y, translation.z), rotation.w, rotation.x, rotation.y, rotation.z)
+
+
+class StampedPoses:
+    """Time series of one transform, interpolated (linear + slerp) at a query stamp."""
+
+    def __init__(self) -> None:
+        self.stamps: list[int] = []
+        self.poses: list[Pose] = []
+        self.static = False
+        self._sorted: np.ndarray | None = None  # the stamps as an array, made on the first lookup
+
+    def add(self, stamp: int, pose: Pose) -> None:
+        self.stamps.append(stamp)
+        self.poses.append(pose)
+        self._sorted = None
+
+    def at(self, stamp: int) -> Pose | None:
+        if self.static:
+            return self.poses[-1]
+        s = self.stamps
+        if self._sorted is None:
+            self._sorted = np.asarray(s, dtype=np.int64)
+        i = int(np.searchsorted(self._sorted, stamp))
+        if i < len(s) and s[i] == stamp:
+            return self.poses[i]
+        if i == 0:
+            return self.poses[0] if s[0] - stamp <= STAMP_TOLERANCE_NS else None
+        if i == len(s):
+            return self.poses[-1] if stamp - s[-1] <= STAMP_TOLERANCE_NS else None
+        return interpolate_pose(stamp, s[i - 1], self.poses[i - 1], s[i], self.poses[i])
+
+
+class SensorPoses:
+    """Where a log's clouds were taken: fed the log's pose messages (add_transforms for /tf,
+    add_pose for a --pose-topic), then asked for a cloud frame's pose at a stamp."""
+
+    def __init__(self, where: str, world_frame: str | None, pose_topic: str | None) -> None:
+        self.where = where
+        self.world_frame = world_frame
+        self.pose_topic = pose_topic
+        self.edges: dict[tuple[str, str], StampedPoses] = {}
+        self.sensor: StampedPoses | None = StampedPoses() if pose_topic is not None else None
+
+    def add_transforms(self, msg, static: bool) -> None:
+        """A tf2_msgs/TFMessage: every transform it holds, edge by edge."""
+        for tr in msg.transforms:
+            key = (tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/"))
+            series = self.edges.setdefault(key, StampedPoses())
+            series.static = static
+            stamp = header_stamp(tr.header)
+            if series.stamps and stamp < series.stamps[-1]:
+                raise SourceError(f"{self.where}: transform {key[0]} -> {key[1]} stamps go backwards at {stamp} ns")
+            series.add(stamp, _pose_of(tr.transform.translation, tr.transform.rotation))
+
+    def add_pose(self, msg) -> None:
+        """An Odometry or PoseStamped message of the pose topic."""
+        pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
+        self.sensor.add(header_stamp(msg.header), _pose_of(pose.position, pose.orientation))
+
+    def check(self) -> None:
+        """After the pose messages are read: a pose topic without messages is an error."""
+        if self.sensor is not None and not self.sensor.stamps:
+            raise SourceError(f"{self.where}: pose topic '{self.pose_topic}' holds no messages")
+
+    def pose_at(self, frame: str, stamp: int) -> Pose:
+        """The pose of a cloud taken in `frame` at `stamp`, in the world frame."""
+        if self.sensor is not None:
+            pose = self.sensor.at(stamp)
+            if pose is None:
+                raise SourceError(f"{self.where}: pose topic '{self.pose_topic}' has no pose at {stamp} ns")
+            return pose
+        return self._chain(frame.lstrip("/"), stamp)
+
+    def _root_of(self, frame: str) -> str:
+        """The top of the /tf tree above `frame` (the default world frame)."""
+        parents = {child: parent for parent, child in self.edges}
+        seen = {frame}
+        while frame in parents:
+            frame = parents[frame]
+            if frame in seen:
+                raise SourceError(f"{self.where}: /tf has a cycle through '{frame}'")
+            seen.add(frame)
+        return frame
+
+    def _chain(self, frame: str, stamp: int) -> Pose:
+        """Pose of `frame` in the world frame at `stamp`, walking /tf edges either way."""
+        if self.world_frame is None:
+            root = self._root_of(frame)
+            if root == frame:
+                raise SourceError(
+                    f"{self.where}: no /tf transform reaches the cloud frame '{frame}' and no --pose-topic was given "
+                    f"(pass --world-frame {frame} to take the clouds as world-frame)")
+            self.world_frame = root
+        if frame == self.world_frame:
+            return Pose.identity()
+        # breadth-first search over the (undirected) transform tree
+        prev: dict[str, tuple[str, tuple[str, str], bool]] = {}
+        seen = {self.world_frame}
+        queue = deque([self.world_frame])
+        while queue:
+            node = queue.popleft()
+            for (parent, child) in self.edges:
+                for a, b, forward in ((parent, child, True), (child, parent, False)):
+                    if a == node and b not in seen:
+                        seen.add(b)
+                        prev[b] = (a, (parent, child), forward)
+                        queue.append(b)
+        if frame not in prev:
+            raise SourceError(f"{self.where}: no transform chain from '{self.world_frame}' to '{frame}' in /tf")
+        pose = Pose.identity()
+        node = frame
+        while node != self.world_frame:
+            a, edge, forward = prev[node]
+            p = self.edges[edge].at(stamp)
+            if p is None:
+                s = self.edges[edge].stamps
+                raise SourceError(
+                    f"{self.where}: transform {edge[0]} -> {edge[1]} has no value at {stamp} ns (known {s[0]}..{s[-1]})"
+                )
+            if not forward:
+                r = p.rotation.T
+                p = Pose(r, -r @ p.translation)
+            pose = p.compose(pose)
+            node = a
+        return pose
