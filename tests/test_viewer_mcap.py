@@ -68,7 +68,7 @@ def test_map_mcap_scene_and_octomap_topics(sample_map, tmp_path):
         reader = make_reader(f, decoder_factories=[DecoderFactory()], validate_crcs=True)
         assert reader.get_header().profile == "ros2"
         decoded = {d.channel.topic: d for d in reader.iter_decoded_messages()}
-    assert set(decoded) == {"/voxtool/map", "/octomap_binary"}
+    assert set(decoded) == {"/voxtool/map", "/octomap_binary", "/projected_map"}
     assert {d.schema.encoding for d in decoded.values()} == {"ros2msg"}
     assert decoded["/voxtool/map"].schema.name == "foxglove_msgs/msg/SceneUpdate"
     scene = decoded["/voxtool/map"].decoded_message  # mcap-ros2-support's decoder
@@ -116,7 +116,8 @@ def test_map_mcap_opens_in_rosbags(sample_map, tmp_path):
     assert cli("export", path, "-o", old_flag, "--ros2-only")[0] == 0
     got = read_ros2(out)
     assert {t: v[0] for t, v in got.items()} == {"/octomap_binary": "octomap_msgs/msg/Octomap",
-                                                 "/voxtool/map": "foxglove_msgs/msg/SceneUpdate"}
+                                                 "/voxtool/map": "foxglove_msgs/msg/SceneUpdate",
+                                                 "/projected_map": "nav_msgs/msg/OccupancyGrid"}
     assert {t: v[0] for t, v in read_ros2(old_flag).items()} == {t: v[0] for t, v in got.items()}
     msg = got["/octomap_binary"][2]
     occ, free, res, _ = snapshot_sets(path)
@@ -176,8 +177,10 @@ def test_map_mcap_is_stamped_with_the_last_scan(tmp_path):
     out = tmp_path / "map.mcap"
     assert cli("export", path, "-o", out)[0] == 0
     got = read_ros2(out)
-    assert [v[1] for v in got.values()] == [300_000_000] * 2
+    assert [v[1] for v in got.values()] == [300_000_000] * 3
     msg, scene = got["/octomap_binary"][2], got["/voxtool/map"][2]
+    grid = got["/projected_map"][2]
+    assert (grid.header.stamp.sec, grid.header.stamp.nanosec) == (0, 300_000_000)
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (0, 300_000_000)
     assert (scene.entities[0].timestamp.sec, scene.entities[0].timestamp.nanosec) == (0, 300_000_000)
 
@@ -196,4 +199,4 @@ def test_sharded_map_mcap_equals_the_single_maps(tmp_path):
     for name in ("one.vxm", "parts"):
         assert cli("export", tmp_path / name, "-o", tmp_path / f"{name}.mcap")[0] == 0
     assert (tmp_path / "parts.mcap").read_bytes() == (tmp_path / "one.vxm.mcap").read_bytes()
-    assert [v[1] for v in read_ros2(tmp_path / "parts.mcap").values()] == [300_000_000] * 2
+    assert [v[1] for v in read_ros2(tmp_path / "parts.mcap").values()] == [300_000_000] * 3

@@ -317,13 +317,17 @@ def crop_keys(box, resolution: float) -> tuple[np.ndarray, np.ndarray]:
 
 def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False,
                progress: bool | None = False, ros2_only: bool = False, view: str | None = None,
-               slice_z: float | None = None, crop: tuple | None = None) -> dict:  # noqa: ARG001
-    """Write a map (.vxm, .bt or a sharded map) as .bt, .ply, .pcd, .png or .mcap; returns what
-    was written. A sharded map is read part by part, except for .mcap and .vxm and with `crop`
-    (whole). `view` and `slice_z` are for pictures (io.picture); `crop` (xmin, ymin, zmin, xmax,
-    ymax, zmax, metres): only the voxels whose centres lie in that box. `ros2_only` changes
-    nothing (every .mcap is ROS 2 now) and is kept for callers that pass it."""
+               slice_z: float | None = None, crop: tuple | None = None,
+               z_range: tuple | None = None) -> dict:  # noqa: ARG001
+    """Write a map (.vxm, .bt or a sharded map) as .bt, .ply, .pcd, .png, .mcap or .pgm (a 2D
+    grid + its nav2 YAML); returns what was written. A sharded map is read part by part, except
+    for .mcap, .vxm and .pgm and with `crop` (whole). `view` and `slice_z` are for pictures
+    (io.picture); `crop` (xmin, ymin, zmin, xmax, ymax, zmax, metres): only the voxels whose
+    centres lie in that box; `z_range` (min, max, metres): the heights a 2D grid (.pgm, .mcap)
+    is projected from. `ros2_only` changes nothing (every .mcap is ROS 2 now) and is kept for
+    callers that pass it."""
     from voxtool.atomic import check_writable
+    from voxtool.io.export import TAKES_Z_RANGE
     from voxtool.io.sharded_export import STREAMED, export_sharded
     from voxtool.progress import bar
 
@@ -340,6 +344,10 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
         extra = {"view": view or "top", "slice_z": slice_z}
     if kind == ".png":
         extra["label"] = Path(path).name
+    if z_range is not None:
+        if kind not in TAKES_Z_RANGE:
+            raise ParameterError(f"{output}: --z-range is for the 2D grid of a .pgm or .mcap")
+        extra["z_range"] = tuple(z_range)
     if crop is not None:
         crop_keys(crop, 1.0)  # a bad box is refused before the map is read
     if Path(path).is_dir() and kind in STREAMED and crop is None:

@@ -13,7 +13,8 @@ from voxtool.cli.common import emit, handle_errors
 @click.argument("map_file", type=click.Path(path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
               help="Output file; its suffix picks the format: .bt, .ply, .pcd, .png, .mcap (ROS 2: a "
-                   "foxglove_msgs/SceneUpdate and an octomap_msgs/Octomap) or .vxm (an OctoMap .bt imported).")
+                   "foxglove_msgs/SceneUpdate, an octomap_msgs/Octomap and a nav_msgs/OccupancyGrid), .pgm (a 2D "
+                   "occupancy grid + nav2 map_server's .yaml beside it) or .vxm (an OctoMap .bt imported).")
 @click.option("--free", "include_free", is_flag=True,
               help="Also write free voxels (.ply/.pcd, coloured; a .bt and a picture always hold them).")
 @click.option("--ros2-only", is_flag=True, hidden=True,
@@ -25,14 +26,19 @@ from voxtool.cli.common import emit, handle_errors
 @click.option("--crop", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
               help="Only the voxels whose centres lie in this box (metres), for every output type (OctoMap "
                    "edit_octree's crop). A sharded map is then read whole.")
+@click.option("--z-range", metavar="MIN,MAX",
+              help=".pgm/.mcap 2D grid: project the voxels whose centres lie at these heights (metres; default: all): "
+                   "a cell is occupied where any of them is occupied, free where all known ones are free, unknown "
+                   "elsewhere (octomap_server's projected_map).")
 @click.option("--json", "as_json", is_flag=True, help="Print what was written as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def export(map_file, output, include_free, ros2_only, view, slice_z, crop, as_json, progress):  # noqa: ARG001
+def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_range, as_json, progress):  # noqa: ARG001
     """Export a map snapshot (.vxm) or an OctoMap .bt: .bt (OctoMap binary, the max-likelihood
     tree), .ply/.pcd (voxel centres), .png (a picture with colour bar, legend, scale bar and axes
     in metres; --view, --slice), .mcap (for Foxglove, RViz and rosbags), or import an OctoMap .bt
-    as a snapshot (.vxm). A sharded map (a directory) is exported part by part (.bt, .ply, .pcd,
+    as a snapshot (.vxm), or a 2D occupancy grid for navigation (.pgm + .yaml, nav2
+    map_server's format; --z-range). A sharded map (a directory) is exported part by part (.bt, .ply, .pcd,
     .png), in the memory of its largest part."""
     from voxtool.api import export_map
     from voxtool.errors import ParameterError
@@ -45,7 +51,10 @@ def export(map_file, output, include_free, ros2_only, view, slice_z, crop, as_js
             raise ParameterError(f"--crop {crop}: give six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres)") from None
         if len(box) != 6:
             raise ParameterError(f"--crop {crop}: give six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres)")
-    written = export_map(map_file, output, include_free, progress, view=view, slice_z=slice_z, crop=box)
+    from voxtool.grid import parse_z_range
+
+    written = export_map(map_file, output, include_free, progress, view=view, slice_z=slice_z, crop=box,
+                         z_range=parse_z_range(z_range))
     rows = [(key.replace("_", " "), f"{value:,}" if isinstance(value, int) else str(value))
             for key, value in written.items() if value is not None]
-    emit(written, as_json, rows, written=output)
+    emit(written, as_json, rows, written=[output, Path(written["yaml"])] if "yaml" in written else output)

@@ -1,4 +1,4 @@
-"""Exports of a map: .bt (OctoMap), .ply / .pcd (voxel centres), .png (a picture), .mcap, .vxm."""
+"""Exports of a map: .bt (OctoMap), .ply / .pcd (voxel centres), .png (a picture), .mcap, .vxm, .pgm (a 2D grid)."""
 
 from __future__ import annotations
 
@@ -143,10 +143,34 @@ def write_vxm(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
 
 
 def write_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-               stamp_ns: int = 0) -> dict:
+               stamp_ns: int = 0, z_range: tuple | None = None) -> dict:
     from voxtool.io.viewer_mcap import write_map_mcap
 
-    return write_map_mcap(path, leaves, resolution, threshold_log, include_free, stamp_ns)
+    return write_map_mcap(path, leaves, resolution, threshold_log, include_free, stamp_ns, z_range)
+
+
+def grid_yaml_path(path: Path) -> Path:
+    """The nav2 map YAML written beside a .pgm grid (map.pgm -> map.yaml)."""
+    return path.with_suffix(".yaml")
+
+
+def write_pgm(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
+              z_range: tuple | None = None) -> dict:
+    """A 2D occupancy grid for nav2's map_server: the image and its YAML beside it (voxtool.grid)."""
+    from voxtool.atomic import check_writable
+    from voxtool.grid import map_yaml, pgm_bytes, project
+
+    if include_free:
+        raise ParameterError(f"{path}: a grid always holds free, occupied and unknown cells; --free is for .ply/.pcd")
+    yaml_path = grid_yaml_path(path)
+    check_writable(yaml_path)
+    grid = project(leaves, resolution, threshold_log, z_range)
+    with atomic_writer(path) as handle:
+        handle.write(pgm_bytes(grid))
+    with atomic_writer(yaml_path) as handle:
+        handle.write(map_yaml(grid, path.name).encode())
+    return {"format": "pgm", "yaml": str(yaml_path), "origin": list(grid.origin),
+            "z_range": list(z_range) if z_range else None, **grid.counts()}
 
 
 # each writes the file and returns what it wrote (format, counts)
@@ -157,4 +181,6 @@ EXPORTERS: dict[str, Callable[[Path, Leaves, float, float, bool], dict]] = {
     ".png": write_png,
     ".vxm": write_vxm,
     ".mcap": write_mcap,
+    ".pgm": write_pgm,
 }
+TAKES_Z_RANGE = (".pgm", ".mcap")  # outputs with a 2D grid projected in --z-range

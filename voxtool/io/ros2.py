@@ -24,7 +24,10 @@ TYPES = {"octomap_msgs/msg/Octomap": "Octomap.msg", "foxglove_msgs/msg/SceneUpda
 
 
 def message_definition(msgtype: str) -> str:
-    """The ros2msg schema text of one of TYPES: its fields, then `MSG: pkg/Type` sections."""
+    """The ros2msg schema text of a type: its fields, then `MSG: pkg/Type` sections. TYPES are
+    the packages' own files; a standard type (nav_msgs, ...) comes from rosbags' Humble store."""
+    if msgtype not in TYPES:
+        return typestore().generate_msgdef(msgtype, ros_version=2)[0]
     return (MSG_DIR / TYPES[msgtype]).read_text()
 
 

@@ -4,6 +4,8 @@ a ROS 2 message (voxtool.io.ros2), so one file opens in Foxglove, rosbags and RO
 - `/voxtool/map`: a foxglove_msgs/msg/SceneUpdate: the occupied leaves of OctoMap's
   max-likelihood tree as cubes (pruned leaves as larger cubes), coloured by height; the free
   leaves as a second, translucent entity when asked for;
+- `/projected_map`: a nav_msgs/msg/OccupancyGrid, the map projected to 2D (voxtool.grid), as
+  octomap_server publishes it for a navigation stack;
 - `/octomap_binary`: an octomap_msgs/msg/Octomap (binary, id OcTree, OctoMap's binary tree
   stream in `data`, as octomap_msgs' binaryMapToMsg fills it), for RViz's OctoMap plugin.
 """
@@ -20,6 +22,7 @@ from voxtool.keys import TREE_MAX_VAL, leaf_edge, morton_decode
 from voxtool.maps.base import Leaves
 
 FRAME = "map"
+GRID_TOPIC = "/projected_map"  # octomap_server's name for the 2D projection
 
 
 def leaf_cubes(leaves: Leaves, resolution: float) -> tuple[np.ndarray, np.ndarray]:
@@ -92,19 +95,39 @@ def octomap_message(leaves: Leaves, resolution: float, threshold_log: float, sta
                                             data=np.frombuffer(body, dtype=np.int8))
 
 
+def grid_message(grid, stamp_ns: int = 0):
+    """The nav_msgs/OccupancyGrid of a projected grid (voxtool.grid), in frame `map`."""
+    from voxtool.io.ros2 import msg, stamp
+
+    h, w = grid.cells.shape
+    origin = msg("geometry_msgs/msg/Pose")(
+        position=msg("geometry_msgs/msg/Point")(x=float(grid.origin[0]), y=float(grid.origin[1]), z=0.0),
+        orientation=msg("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0))
+    info = msg("nav_msgs/msg/MapMetaData")(map_load_time=stamp(stamp_ns), resolution=float(grid.resolution),
+                                           width=w, height=h, origin=origin)
+    header = msg("std_msgs/msg/Header")(stamp=stamp(stamp_ns), frame_id=FRAME)
+    return msg("nav_msgs/msg/OccupancyGrid")(header=header, info=info, data=grid.cells.ravel())
+
+
 def write_map_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-                   stamp_ns: int = 0) -> dict:
-    """The map as one octomap_msgs/Octomap and one foxglove_msgs/SceneUpdate, both at `stamp_ns`
-    (log time, header and entity stamps): the time of the last scan the map holds, 0 if unknown."""
+                   stamp_ns: int = 0, z_range: tuple | None = None) -> dict:
+    """The map as one octomap_msgs/Octomap, one foxglove_msgs/SceneUpdate and one
+    nav_msgs/OccupancyGrid (projected in `z_range`, as octomap_server's projected_map), all at
+    `stamp_ns` (log time, header and entity stamps): the time of the last scan the map holds, 0
+    if unknown."""
+    from voxtool.grid import project
     from voxtool.io.ros2 import Ros2McapWriter
 
     update = scene_update(leaves, resolution, threshold_log, include_free, stamp_ns)
     octomap = octomap_message(leaves, resolution, threshold_log, stamp_ns)
+    grid = project(leaves, resolution, threshold_log, z_range) if len(leaves) else None
     with atomic_writer(path) as f:
         writer = Ros2McapWriter(f)
         writer.write(writer.channel("/octomap_binary", "octomap_msgs/msg/Octomap"), octomap, stamp_ns)
         writer.write(writer.channel("/voxtool/map", "foxglove_msgs/msg/SceneUpdate"), update, stamp_ns)
+        if grid is not None:
+            writer.write(writer.channel(GRID_TOPIC, "nav_msgs/msg/OccupancyGrid"), grid_message(grid, stamp_ns), stamp_ns)
         writer.finish()
-    return {"format": "mcap", "topics": ["/octomap_binary", "/voxtool/map"],
+    return {"format": "mcap", "topics": ["/octomap_binary", "/voxtool/map"] + ([GRID_TOPIC] if grid else []),
             "cubes": {e.id: len(e.cubes) for e in update.entities}, "octomap_bytes": len(octomap.data),
-            "stamp_ns": stamp_ns}
+            "grid": grid.counts() if grid else None, "stamp_ns": stamp_ns}

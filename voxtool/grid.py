@@ -1,0 +1,106 @@
+"""A 3D map projected to the 2D occupancy grid a navigation stack plans on, as octomap_server's
+`projected_map` does it: a cell is occupied where any occupied voxel of its column lies in the
+height range, free where only free ones do, unknown where none is known.
+
+The grid's cells are the map's voxel columns (same resolution, same origin grid), so every
+voxel falls in exactly one cell. Pruned leaves cover squares of cells, painted whole.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from voxtool.errors import ParameterError
+from voxtool.keys import TREE_MAX_VAL, leaf_edge, morton_decode
+from voxtool.maps.base import Leaves
+
+UNKNOWN, FREE, OCCUPIED = -1, 0, 100  # nav_msgs/OccupancyGrid's cell values
+_PAINT_CELLS = 1 << 22  # cells painted per numpy step (bounded memory for large leaves)
+
+
+@dataclass
+class Grid2D:
+    """cells[row, col]: row 0 is the lowest y, col 0 the lowest x (OccupancyGrid's order);
+    origin: the (x, y) of cell (0, 0)'s outer corner, metres."""
+
+    cells: np.ndarray  # int8: UNKNOWN, FREE or OCCUPIED
+    resolution: float
+    origin: tuple[float, float]
+    z_range: tuple[float, float] | None
+
+    def counts(self) -> dict:
+        return {"cells": int(self.cells.size), "width": int(self.cells.shape[1]), "height": int(self.cells.shape[0]),
+                "occupied_cells": int((self.cells == OCCUPIED).sum()), "free_cells": int((self.cells == FREE).sum()),
+                "unknown_cells": int((self.cells == UNKNOWN).sum())}
+
+
+def parse_z_range(text: str | None) -> tuple[float, float] | None:
+    """--z-range MIN,MAX (metres) as a pair, checked; None for the whole height."""
+    if text is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ParameterError(f"--z-range {text}: give two numbers MIN,MAX (metres)") from None
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi):
+        raise ParameterError(f"--z-range {text}: MIN must be at most MAX, both finite")
+    return lo, hi
+
+
+def project(leaves: Leaves, resolution: float, threshold_log: float,
+            z_range: tuple[float, float] | None = None) -> Grid2D:
+    """The 2D grid of the voxels whose centres lie in z_range (inclusive; None: all)."""
+    keys = morton_decode(leaves.codes).astype(np.int64)
+    edge = leaf_edge(leaves.depths)
+    if z_range is not None:
+        z_lo = int(np.ceil(z_range[0] / resolution - 0.5)) + TREE_MAX_VAL  # the crop box's rule (api.crop_keys)
+        z_hi = int(np.floor(z_range[1] / resolution - 0.5)) + TREE_MAX_VAL
+        inside = (keys[:, 2] <= z_hi) & (keys[:, 2] + edge - 1 >= z_lo)
+        keys, edge, values = keys[inside], edge[inside], leaves.values[inside]
+    else:
+        values = leaves.values
+    if keys.shape[0] == 0:
+        raise ParameterError("no voxel of the map lies in the --z-range" if z_range else "the map holds no voxel")
+    x0, y0 = int(keys[:, 0].min()), int(keys[:, 1].min())
+    width = int((keys[:, 0] + edge).max()) - x0
+    height = int((keys[:, 1] + edge).max()) - y0
+    if width * height > 1 << 31:
+        raise ParameterError(f"the grid would have {width} x {height} cells; give a --z-range or --crop")
+    paint = np.zeros(width * height, dtype=np.uint8)  # 0 unknown, 1 free, 2 occupied: the highest wins
+    occupied = values > np.float32(threshold_log)
+    for state, chosen in ((1, ~occupied), (2, occupied)):  # occupied painted last: it wins a cell
+        for e in np.unique(edge[chosen]).tolist():
+            m = chosen & (edge == e)
+            base = (keys[m, 1] - y0) * width + (keys[m, 0] - x0)
+            square = (np.arange(e)[:, None] * width + np.arange(e)[None, :]).ravel()
+            step = max(1, _PAINT_CELLS // square.size)
+            for i in range(0, base.shape[0], step):
+                paint[(base[i:i + step, None] + square[None, :]).ravel()] = state
+    cells = np.array([UNKNOWN, FREE, OCCUPIED], dtype=np.int8)[paint].reshape(height, width)
+    origin = ((x0 - TREE_MAX_VAL) * resolution, (y0 - TREE_MAX_VAL) * resolution)
+    return Grid2D(cells, resolution, origin, z_range)
+
+
+# nav2 map_server's trinary image: occ = (255 - pixel) / 255 is occupied above occupied_thresh,
+# free below free_thresh, unknown between (ROS map_saver's pixels and thresholds: 0, 254, 205)
+PGM_PIXEL = {OCCUPIED: 0, FREE: 254, UNKNOWN: 205}
+OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.196
+
+
+def pgm_bytes(grid: Grid2D) -> bytes:
+    """A binary PGM (P5) of the grid, the top row the highest y (an image's first row)."""
+    lut = np.full(256, PGM_PIXEL[UNKNOWN], dtype=np.uint8)
+    lut[OCCUPIED], lut[FREE] = PGM_PIXEL[OCCUPIED], PGM_PIXEL[FREE]
+    image = lut[grid.cells.view(np.uint8)][::-1]
+    h, w = image.shape
+    return f"P5\n# voxtool occupancy grid, {grid.resolution:g} m\n{w} {h}\n255\n".encode() + image.tobytes()
+
+
+def map_yaml(grid: Grid2D, image_name: str) -> str:
+    """nav2 map_server's map YAML for the image: the corner of its bottom-left pixel as origin."""
+    x, y = grid.origin
+    return (f"image: {image_name}\nmode: trinary\nresolution: {grid.resolution!r}\n"
+            f"origin: [{x!r}, {y!r}, 0.0]\nnegate: 0\noccupied_thresh: {OCCUPIED_THRESH}\n"
+            f"free_thresh: {FREE_THRESH}\n")
