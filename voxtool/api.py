@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -13,7 +14,7 @@ from voxtool.config import MapParams, SensorModel
 from voxtool.errors import ParameterError
 from voxtool.io.snapshot import ChunkedArrays
 from voxtool.maps.base import Leaves, MapBackend
-from voxtool.sources import SourceOptions, open_source
+from voxtool.sources import SourceOptions, open_source, resolve_origin
 
 
 def backend_stats(backend: MapBackend, tree: dict | None = None) -> dict:
@@ -56,6 +57,7 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
             check_writable(path)
     t_start = time.perf_counter()
     startup = process_age()
+    options = resolve_origin(source, options, params.resolution)
     stream = open_source(source, options)
     backend = make_backend(backend_name, params, sensor, **(backend_options or {}))
     writer = None
@@ -67,7 +69,8 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
         writer = ShareWriter(share, robot, share_ring, "zstd", params.resolution)
     ok = False
     try:
-        report = build(stream, backend, progress, writer)
+        with origin_hint(options):
+            report = build(stream, backend, progress, writer)
         ok = True
     finally:
         if writer is not None:
@@ -77,12 +80,14 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     tree, t_stats, t_write = None, 0.0, None
     if output is not None:
         info = {"source": str(source), "source_kind": stream.kind, "source_options": options.__dict__,
-                **{k: counts[k] for k in RECORDED_COUNTS}, "last_stamp_ns": report.last_stamp_ns or 0}
+                **{k: counts[k] for k in RECORDED_COUNTS}, "last_stamp_ns": report.last_stamp_ns or 0,
+                "origin": origin_of(options)}
         tree, t_stats, t_write = save_counted(output, backend, info)
     t0 = time.perf_counter()
     result = backend_stats(backend, tree)
     t_stats += time.perf_counter() - t0
     result.update(counts)
+    result["origin"] = origin_of(options)
     result["threads"] = backend.threads
     if per_scan:
         result["per_scan"] = report.per_scan()
@@ -97,6 +102,28 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
                                open=round(t_loop_end - t_start - report.time_total - report.time_jit, 6),
                                stats=round(t_stats, 6))
     return result
+
+
+def origin_of(options: SourceOptions) -> list[float]:
+    """The map's local origin in the scans' frame (--origin), [0, 0, 0] without one: what
+    snapshots record and `stats` reports; .bt files and packets are in the local frame."""
+    return [float(v) for v in options.origin] if options.origin is not None else [0.0, 0.0, 0.0]
+
+
+@contextmanager
+def origin_hint(options: SourceOptions):
+    """A point beyond the key range: its error says how to build about a local origin."""
+    from voxtool.errors import KeyRangeError
+
+    try:
+        yield
+    except KeyRangeError as err:
+        if options.origin is None:
+            raise KeyRangeError(f"{err}; scans far from their frame's origin (a city or UTM frame) build about a "
+                                "local origin with --origin auto") from err
+        raise KeyRangeError(f"{err} (coordinates relative to --origin "
+                            f"{','.join(f'{v:g}' for v in options.origin)}: the scans span more than the key range; "
+                            "give a coarser --resolution or --max-range)") from err
 
 
 def save_counted(output: str | os.PathLike, backend: MapBackend, info: dict) -> tuple[dict | None, float, float]:
@@ -199,8 +226,9 @@ def build_one_map(sources: list, options: SourceOptions, params: MapParams, sens
     from voxtool.maps.shards import DEFAULT_SHARD_DEPTH, check_shard_depth
 
     depth = check_shard_depth(shard_depth if shard_depth is not None else DEFAULT_SHARD_DEPTH)
+    options = resolve_origin(sources[0], options, params.resolution)  # auto: the first source's first scan
     info = {"source": [str(s) for s in sources] if len(sources) > 1 else str(sources[0]),
-            "source_options": options.__dict__}
+            "source_options": options.__dict__, "origin": origin_of(options)}
     if not sharded:
         if output is not None:
             if Path(output).suffix.lower() != ".vxm":
@@ -246,7 +274,9 @@ def load_leaves(path: str | os.PathLike) -> tuple[Leaves, float, float, dict]:
         for _, part, part_threshold in iter_part_leaves(path):  # every part holds the map's sensor model
             parts.append(part)
             threshold = part_threshold
-        info = {"backend": "octree", "info": {"last_stamp_ns": manifest.get("info", {}).get("last_stamp_ns", 0)}}
+        recorded = manifest.get("info", {})
+        info = {"backend": "octree", "info": {"last_stamp_ns": recorded.get("last_stamp_ns", 0),
+                                              "origin": recorded.get("origin")}}
         return join_leaves(parts, consume=True), manifest["map_params"]["resolution"], threshold, info
     if path.suffix.lower() == ".bt":
         from voxtool.io.bt import read_bt
@@ -259,6 +289,16 @@ def load_leaves(path: str | os.PathLike) -> tuple[Leaves, float, float, dict]:
     from voxtool.io.mapfile import read_leaves
 
     return read_leaves(path)  # an octree snapshot's stored leaves, without rebuilding its tree
+
+
+def map_origin(path: str | os.PathLike) -> list[float] | None:
+    """The local origin a sharded map's manifest records (None: none, or not a sharded map)."""
+    from voxtool.io.sharded import read_manifest
+
+    if not Path(path).is_dir():
+        return None
+    origin = read_manifest(path).get("info", {}).get("origin")
+    return origin if origin is not None and any(origin) else None
 
 
 def map_stats(path: str | os.PathLike, progress: bool | None = False) -> dict:
@@ -288,6 +328,7 @@ def map_stats(path: str | os.PathLike, progress: bool | None = False) -> dict:
             out[key] = info[key]
     out["voxtool_version"] = snap.header.get("voxtool_version")
     out["source"] = info.get("source")
+    out["origin"] = info.get("origin", [0.0, 0.0, 0.0])
     return out
 
 
@@ -327,7 +368,7 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
     is projected from. `ros2_only` changes nothing (every .mcap is ROS 2 now) and is kept for
     callers that pass it."""
     from voxtool.atomic import check_writable
-    from voxtool.io.export import TAKES_Z_RANGE
+    from voxtool.io.export import TAKES_ORIGIN, TAKES_Z_RANGE
     from voxtool.io.sharded_export import STREAMED, export_sharded
     from voxtool.progress import bar
 
@@ -350,10 +391,13 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
         extra["z_range"] = tuple(z_range)
     if crop is not None:
         crop_keys(crop, 1.0)  # a bad box is refused before the map is read
-    if Path(path).is_dir() and kind in STREAMED and crop is None:
+    if Path(path).is_dir() and kind in STREAMED and crop is None and not map_origin(path):
         return export_sharded(path, output, include_free, progress, **extra)  # part by part
     with bar(2, f"export {output.suffix}", progress, "step") as steps:
         leaves, res, thr, meta = load_leaves(path)
+        origin = meta.get("info", {}).get("origin")
+        if kind in TAKES_ORIGIN and origin is not None and any(origin):
+            extra["origin"] = tuple(origin)
         if kind == ".mcap":  # stamped with the map's last scan (0: a map that does not say)
             extra["stamp_ns"] = int(meta.get("info", {}).get("last_stamp_ns", 0) or 0)
         if crop is not None:

@@ -251,14 +251,16 @@ def check_outputs(output: str | os.PathLike | None, labels: str | os.PathLike | 
         check_writable(labels)
 
 
-def write_cloud_points(path: str | os.PathLike, points: np.ndarray) -> None:
-    """Points as a binary .pcd or .ply (the export writers' layout), atomically."""
+def write_cloud_points(path: str | os.PathLike, points: np.ndarray, origin=None, resolution: float = 1.0) -> None:
+    """Points as a binary .pcd or .ply (the export writers' layout), atomically; moved back to
+    the scans' frame by the local origin (--origin), in float64 where float32 would blur them."""
     from voxtool.atomic import atomic_writer
-    from voxtool.io.export import CLOUD_FORMATS
+    from voxtool.io.export import CLOUD_FORMATS, in_source_frame
 
     header, rows = CLOUD_FORMATS[Path(path).suffix.lower().lstrip(".")]
+    points = in_source_frame(points, origin, resolution)
     with atomic_writer(path) as handle:
-        handle.write(header(len(points), False))
+        handle.write(header(len(points), False, points.dtype == np.float64))
         handle.write(rows(points, None))
 
 
@@ -273,16 +275,20 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
                  output: str | os.PathLike | None = None, labels: str | os.PathLike | None = None,
                  threads: int = 0, progress: bool | None = None) -> dict[str, Any]:
     """`voxtool clean`: judge every point of `source`, write the static points and/or the labels."""
+    from voxtool.sources import resolve_origin
+
     check_outputs(output, labels)
+    options = resolve_origin(source, options, params.resolution)
     cleaned = clean_stream(open_source(source, options), params, threads, progress)
     t0 = time.perf_counter()
     if output is not None:
-        write_cloud_points(output, cleaned.points[~cleaned.dynamic])
+        write_cloud_points(output, cleaned.points[~cleaned.dynamic], options.origin, params.resolution)
     if labels is not None:
         write_labels(labels, cleaned.dynamic)
     figures = cleaned.figures
     figures["timings_s"]["write"] = round(time.perf_counter() - t0, 6)
     figures["source"] = str(source)
+    figures["origin"] = list(options.origin) if options.origin is not None else [0.0, 0.0, 0.0]
     return figures
 
 

@@ -112,6 +112,7 @@ class _Map:
     manifest: dict | None = None  # a sharded map's
     leaves: Leaves | None = None  # a single file's
     threshold: float = 0.0
+    origin: list | None = None  # the local origin it was built about (--origin), None: none
 
 
 def _open(path: str | os.PathLike) -> _Map:
@@ -120,11 +121,12 @@ def _open(path: str | os.PathLike) -> _Map:
     path = Path(path)
     if path.is_dir():
         manifest = sharded.read_manifest(path)
-        return _Map(path, float(manifest["map_params"]["resolution"]), manifest=manifest)
+        return _Map(path, float(manifest["map_params"]["resolution"]), manifest=manifest,
+                    origin=manifest.get("info", {}).get("origin"))
     from voxtool.api import load_leaves
 
-    leaves, resolution, threshold, _ = load_leaves(path)
-    return _Map(path, resolution, leaves=leaves, threshold=threshold)
+    leaves, resolution, threshold, meta = load_leaves(path)
+    return _Map(path, resolution, leaves=leaves, threshold=threshold, origin=meta.get("info", {}).get("origin"))
 
 
 def split_to_depth(leaves: Leaves, depth: int) -> Leaves:
@@ -191,6 +193,10 @@ def diff_maps(a_path: str | os.PathLike, b_path: str | os.PathLike, progress: bo
     if not np.isclose(a.resolution, b.resolution, rtol=0, atol=1e-9):
         raise ParameterError(f"{b.path}: resolution {b.resolution:g} m, {a.path} has {a.resolution:g} m: maps of "
                              "different resolutions are not compared voxel by voxel")
+    origins = [np.zeros(3) if m.origin is None else np.asarray(m.origin, dtype=np.float64) for m in (a, b)]
+    if not np.allclose(origins[0], origins[1], rtol=0, atol=1e-6):
+        raise ParameterError(f"{b.path}: built about the local origin {origins[1].tolist()}, {a.path} about "
+                             f"{origins[0].tolist()}: build both with the same --origin X,Y,Z to compare them")
     result = MapDiff(a.resolution, b_map=b)
     for la, ta, lb, tb in _regions(a, b, progress):
         result.add(la, ta, lb, tb)

@@ -138,7 +138,7 @@ def write_pcd_scans(scene: Scene, directory: str | Path) -> np.ndarray:
         rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         local = ((points.astype(np.float64) - origin) @ rot).astype(np.float32)  # R^T (p - t)
         viewpoint = (*origin, np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
-        (directory / f"{i:06d}.pcd").write_bytes(pcd_header(len(local), False, viewpoint) + pcd_rows(local, None))
+        (directory / f"{i:06d}.pcd").write_bytes(pcd_header(len(local), False, viewpoint=viewpoint) + pcd_rows(local, None))
         labels.append(moving)
         poses.append(f"{i / scene.rate_hz:.6f} {origin[0]:.9f} {origin[1]:.9f} {origin[2]:.9f} "
                      f"0 0 {np.sin(yaw / 2):.12f} {np.cos(yaw / 2):.12f}\n")

@@ -19,10 +19,12 @@ STATE_NAMES = ("unknown", "free", "occupied")
 class VoxelMap:
     """An occupancy map loaded for queries (see docs/python.md)."""
 
-    def __init__(self, leaves: Leaves, resolution: float, threshold_log: float, path: str | None = None) -> None:
+    def __init__(self, leaves: Leaves, resolution: float, threshold_log: float, path: str | None = None,
+                 origin=(0.0, 0.0, 0.0)) -> None:
         from voxtool.maps.shards import ShardedOctree
 
         self.path = path
+        self.origin = np.asarray(origin if origin is not None else (0.0, 0.0, 0.0), dtype=np.float64)  # --origin
         self.resolution = float(resolution)
         self.threshold_log = float(threshold_log)
         self._leaves = leaves
@@ -33,10 +35,13 @@ class VoxelMap:
         return f"VoxelMap({self.path or 'in memory'}, resolution={self.resolution:g} m, {len(self._leaves):,} leaves)"
 
     def _codes(self, xyz) -> tuple[np.ndarray, np.ndarray]:
-        """Morton codes of points (N x 3, metres) and which points lie inside the key range."""
+        """Morton codes of points (N x 3, metres in the scans' frame) and which points lie inside
+        the key range."""
         pts = np.atleast_2d(np.asarray(xyz, dtype=np.float64))
         if pts.shape[-1] != 3:
             raise ValueError(f"points must be N x 3 coordinates, not shape {pts.shape}")
+        if self.origin.any():
+            pts = pts - self.origin  # a map built about a local origin holds the scans moved by it
         keys, inside = keys_inside(pts, self.resolution)  # NaN compares false: outside
         return morton_encode(keys), inside
 
@@ -74,11 +79,14 @@ class VoxelMap:
         """Write as .bt, .ply, .pcd, .png or .mcap (the suffix decides); returns what was written."""
         from voxtool.api import exporter
 
-        return exporter(Path(path))(Path(path), self._leaves, self.resolution, self.threshold_log, include_free)
+        from voxtool.io.export import TAKES_ORIGIN
+
+        extra = {"origin": tuple(self.origin)} if self.origin.any() and Path(path).suffix.lower() in TAKES_ORIGIN else {}
+        return exporter(Path(path))(Path(path), self._leaves, self.resolution, self.threshold_log, include_free, **extra)
 
 
 def load(path: str | os.PathLike) -> VoxelMap:
     from voxtool.api import load_leaves
 
-    leaves, resolution, threshold_log, _ = load_leaves(path)
-    return VoxelMap(leaves, resolution, threshold_log, str(path))
+    leaves, resolution, threshold_log, meta = load_leaves(path)
+    return VoxelMap(leaves, resolution, threshold_log, str(path), meta.get("info", {}).get("origin"))

@@ -14,12 +14,14 @@ from voxtool.cli.common import (
     emit,
     emit_fleet,
     handle_errors,
+    origin_option,
     plot_option,
     resolve_source,
     scan_options,
     scan_setup,
     summary_rows,
     warn_dropped,
+    with_origin,
 )
 
 
@@ -31,6 +33,7 @@ from voxtool.cli.common import (
                    "in /): one map per source, named after it. With --sharded: the sharded map's directory.")
 @backend_options
 @scan_options
+@origin_option
 @click.option("--decay", type=float, metavar="SECONDS",
               help="octree: let the map forget: every voxel's log-odds halve towards unknown over SECONDS of scan "
                    "time, and a voxel within 0.01 log-odds of unknown is forgotten (docs/decay.md). Needs scan "
@@ -47,9 +50,12 @@ from voxtool.cli.common import (
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @plot_option("each scan's latency and the map's size over the scans (one map built in this process)")
 @handle_errors
-def build(sources, sample, output, decay, share, ring, workers, scheduler, one_map, sharded, as_json, progress, plot, **kw):
+def build(sources, sample, output, origin, decay, share, ring, workers, scheduler, one_map, sharded, as_json, progress,
+          plot, **kw):
     """Build an occupancy map from SOURCE: a directory of PCD (or PLY + --poses) scans, a single
-    PCD/PLY file, a ROS 2 .mcap file, or an OctoMap .graph file.
+    PCD/PLY file, a ROS 2 .mcap file, a ROS 1 .bag file, a ROS 2 bag directory (.db3 or .mcap
+    storage), or an OctoMap .graph file. Bags and MCAP files give PointCloud2 or LaserScan
+    scans posed by /tf or --pose-topic.
 
     \b
     Several SOURCES:
@@ -64,6 +70,7 @@ def build(sources, sample, output, decay, share, ring, workers, scheduler, one_m
     if sample or not sources:
         sources = (resolve_source(None if not sources else sources[0], sample),)
     options, params, sensor = scan_setup(kw)
+    options = with_origin(options, origin)
     backend, extra = backend_setup(kw)
     if decay is not None:
         extra["decay_half_life"] = decay

@@ -6,7 +6,16 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors, resolve_source, source_options, source_setup, threads_option
+from voxtool.cli.common import (
+    emit,
+    handle_errors,
+    origin_option,
+    resolve_source,
+    source_options,
+    source_setup,
+    threads_option,
+    with_origin,
+)
 
 
 @click.command()
@@ -25,11 +34,12 @@ from voxtool.cli.common import emit, handle_errors, resolve_source, source_optio
 @click.option("--max-range", default=-1.0, show_default=True, type=float,
               help="Rays are cut here and give no evidence beyond; < 0 = unlimited.")
 @source_options
+@origin_option
 @threads_option
 @click.option("--json", "as_json", is_flag=True, help="Print figures and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def clean(source, sample, output, labels, resolution, sensor_noise, pose_error, max_range, threads, as_json,
+def clean(source, sample, output, labels, resolution, sensor_noise, pose_error, max_range, origin, threads, as_json,
           progress, **kw):
     """Judge every point of SOURCE static or dynamic and write the static map (-o) and/or the labels.
 
@@ -45,7 +55,7 @@ def clean(source, sample, output, labels, resolution, sensor_noise, pose_error, 
     from voxtool.clean import CleanParams, clean_source
 
     source = resolve_source(source, sample)
-    options = source_setup(kw)
+    options = with_origin(source_setup(kw), origin)
     params = CleanParams(resolution=resolution, sensor_noise=sensor_noise, pose_error=pose_error, max_range=max_range)
     result = clean_source(source, options, params, output, labels, threads, progress)
     t = result["timings_s"]

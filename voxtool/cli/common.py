@@ -169,6 +169,9 @@ def summary_rows(stats: dict) -> list[tuple[str, str]]:
         rows.append(("memory", f"{stats['pool_bytes_used'] / 2**20:.1f} MiB in use, {stats['pool_bytes'] / 2**20:.1f} MiB "
                                f"allocated ({stats.get('backend')})"))
     rows.append(("occupied bbox", f"{bbox['min']} .. {bbox['max']}" if bbox else "(empty)"))
+    if any(stats.get("origin") or ()):
+        rows.append(("local origin", f"{stats['origin']} in the scans' frame (the bbox and a .bt are relative to it; "
+                                     ".ply/.pcd/.mcap exports are in the scans' frame)"))
     if "scans" in stats:
         rows += [("scans", f"{stats['scans']:,}"), ("points", f"{stats['points']:,} ({stats['points_dropped']:,} dropped)")]
     if "workers" in stats:
@@ -258,6 +261,23 @@ def scan_setup(kw: dict):
     sensor = SensorModel(kw.pop("prob_hit"), kw.pop("prob_miss"), kw.pop("clamp_min"), kw.pop("clamp_max"),
                          kw.pop("threshold"))
     return options, params, sensor
+
+
+origin_option = click.option(
+    "--origin", metavar="auto|X,Y,Z",
+    help="Build about a local origin (metres in the scans' frame, snapped to the voxel grid): scans in a city or UTM "
+         "frame, km from its origin, fit the octree's key range (+-3276.8 m at 0.1 m). auto: the first scan's sensor "
+         "position. Outputs of points (.ply/.pcd/.mcap) are written back in the scans' frame (float64 where float32 "
+         "would blur a voxel); a .bt is in the local frame; `stats` reports the origin.")
+
+
+def with_origin(options, text: str | None):
+    """SourceOptions with the --origin given (auto or X,Y,Z), resolved when the source is read."""
+    from dataclasses import replace
+
+    from voxtool.sources import parse_origin
+
+    return replace(options, origin=parse_origin(text)) if text is not None else options
 
 
 threads_option = click.option(

@@ -22,6 +22,7 @@ from voxtool.keys import TREE_MAX_VAL, leaf_edge, morton_decode
 from voxtool.maps.base import Leaves
 
 FRAME = "map"
+LOCAL_FRAME = "map_local"  # the octree's frame of a map built about a local origin (--origin)
 GRID_TOPIC = "/projected_map"  # octomap_server's name for the 2D projection
 
 
@@ -64,44 +65,50 @@ def scene_message(entities: list, deletions: list | None = None):
 
 
 def scene_update(leaves: Leaves, resolution: float, threshold_log: float, include_free: bool, stamp_ns: int = 0,
-                 entity_prefix: str = "", colour=None):
+                 entity_prefix: str = "", colour=None, origin=None):
     """A foxglove_msgs/SceneUpdate of the max-likelihood tree's leaves: entity `occupied` (by
-    height, or one `colour`) and, with include_free, `free` (translucent)."""
+    height, or one `colour`) and, with include_free, `free` (translucent); cube centres moved
+    by the map's local origin into the scans' frame (float64, as geometry_msgs/Point holds)."""
     from voxtool.maps.tree import max_likelihood
 
     tree = max_likelihood(leaves, threshold_log)
     occupied = tree.values > 0
     entities = []
+    shift = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
     centres, sizes = leaf_cubes(Leaves(tree.codes[occupied], tree.depths[occupied], tree.values[occupied]), resolution)
+    centres = centres + shift
     rgb = height_colours(centres[:, 2]) if colour is None else np.tile(np.asarray(colour, float), (len(sizes), 1))
     entities.append(scene_entity(f"{entity_prefix}occupied", centres, sizes,
                                         np.column_stack([rgb, np.ones(len(sizes))]), stamp_ns))
     if include_free:
         free = ~occupied
         centres, sizes = leaf_cubes(Leaves(tree.codes[free], tree.depths[free], tree.values[free]), resolution)
+        centres = centres + shift
         rgba = np.tile([0.6, 0.85, 0.6, 0.08], (len(sizes), 1))
         entities.append(scene_entity(f"{entity_prefix}free", centres, sizes, rgba, stamp_ns))
     return scene_message(entities)
 
 
-def octomap_message(leaves: Leaves, resolution: float, threshold_log: float, stamp_ns: int = 0):
+def octomap_message(leaves: Leaves, resolution: float, threshold_log: float, stamp_ns: int = 0, frame: str = FRAME):
     """The octomap_msgs/Octomap of the map (OctoMap's binary tree stream as data)."""
     from voxtool.io.bt import tree_stream
     from voxtool.io.ros2 import msg, stamp
 
     body = tree_stream(leaves, threshold_log)[0]
-    header = msg("std_msgs/msg/Header")(stamp=stamp(stamp_ns), frame_id=FRAME)
+    header = msg("std_msgs/msg/Header")(stamp=stamp(stamp_ns), frame_id=frame)
     return msg("octomap_msgs/msg/Octomap")(header=header, binary=True, id="OcTree", resolution=float(resolution),
                                             data=np.frombuffer(body, dtype=np.int8))
 
 
-def grid_message(grid, stamp_ns: int = 0):
-    """The nav_msgs/OccupancyGrid of a projected grid (voxtool.grid), in frame `map`."""
+def grid_message(grid, stamp_ns: int = 0, shift=(0.0, 0.0, 0.0)):
+    """The nav_msgs/OccupancyGrid of a projected grid (voxtool.grid), in frame `map` (moved by
+    the map's local origin `shift` into the scans' frame)."""
     from voxtool.io.ros2 import msg, stamp
 
     h, w = grid.cells.shape
+    x, y, z = (float(grid.origin[0]) + float(shift[0]), float(grid.origin[1]) + float(shift[1]), float(shift[2]))
     origin = msg("geometry_msgs/msg/Pose")(
-        position=msg("geometry_msgs/msg/Point")(x=float(grid.origin[0]), y=float(grid.origin[1]), z=0.0),
+        position=msg("geometry_msgs/msg/Point")(x=x, y=y, z=z),
         orientation=msg("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0))
     info = msg("nav_msgs/msg/MapMetaData")(map_load_time=stamp(stamp_ns), resolution=float(grid.resolution),
                                            width=w, height=h, origin=origin)
@@ -109,25 +116,45 @@ def grid_message(grid, stamp_ns: int = 0):
     return msg("nav_msgs/msg/OccupancyGrid")(header=header, info=info, data=grid.cells.ravel())
 
 
+def local_frame_message(origin, stamp_ns: int):
+    """/tf_static: frame `map` (the scans' frame) -> `map_local` (the octree's frame, at the
+    map's local origin), so RViz places the Octomap, which can only be in the octree's frame."""
+    from voxtool.io.ros2 import msg, stamp
+
+    header = msg("std_msgs/msg/Header")(stamp=stamp(stamp_ns), frame_id=FRAME)
+    transform = msg("geometry_msgs/msg/Transform")(
+        translation=msg("geometry_msgs/msg/Vector3")(x=float(origin[0]), y=float(origin[1]), z=float(origin[2])),
+        rotation=msg("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0))
+    return msg("tf2_msgs/msg/TFMessage")(transforms=[msg("geometry_msgs/msg/TransformStamped")(
+        header=header, child_frame_id=LOCAL_FRAME, transform=transform)])
+
+
 def write_map_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-                   stamp_ns: int = 0, z_range: tuple | None = None) -> dict:
+                   stamp_ns: int = 0, z_range: tuple | None = None, origin=None) -> dict:
     """The map as one octomap_msgs/Octomap, one foxglove_msgs/SceneUpdate and one
     nav_msgs/OccupancyGrid (projected in `z_range`, as octomap_server's projected_map), all at
     `stamp_ns` (log time, header and entity stamps): the time of the last scan the map holds, 0
-    if unknown."""
+    if unknown. A map built about a local origin: the scene and the grid in the scans' frame
+    (`map`), the Octomap in `map_local` with a /tf_static transform between the two."""
     from voxtool.grid import project
     from voxtool.io.ros2 import Ros2McapWriter
 
-    update = scene_update(leaves, resolution, threshold_log, include_free, stamp_ns)
-    octomap = octomap_message(leaves, resolution, threshold_log, stamp_ns)
+    shifted = origin is not None and any(origin)
+    update = scene_update(leaves, resolution, threshold_log, include_free, stamp_ns, origin=origin)
+    octomap = octomap_message(leaves, resolution, threshold_log, stamp_ns, LOCAL_FRAME if shifted else FRAME)
     grid = project(leaves, resolution, threshold_log, z_range) if len(leaves) else None
     with atomic_writer(path) as f:
         writer = Ros2McapWriter(f)
+        if shifted:
+            writer.write(writer.channel("/tf_static", "tf2_msgs/msg/TFMessage"), local_frame_message(origin, stamp_ns),
+                         stamp_ns)
         writer.write(writer.channel("/octomap_binary", "octomap_msgs/msg/Octomap"), octomap, stamp_ns)
         writer.write(writer.channel("/voxtool/map", "foxglove_msgs/msg/SceneUpdate"), update, stamp_ns)
         if grid is not None:
-            writer.write(writer.channel(GRID_TOPIC, "nav_msgs/msg/OccupancyGrid"), grid_message(grid, stamp_ns), stamp_ns)
+            writer.write(writer.channel(GRID_TOPIC, "nav_msgs/msg/OccupancyGrid"),
+                         grid_message(grid, stamp_ns, origin if shifted else (0.0, 0.0, 0.0)), stamp_ns)
         writer.finish()
-    return {"format": "mcap", "topics": ["/octomap_binary", "/voxtool/map"] + ([GRID_TOPIC] if grid else []),
+    return {"format": "mcap", "topics": (["/tf_static"] if shifted else []) + ["/octomap_binary", "/voxtool/map"]
+            + ([GRID_TOPIC] if grid else []),
             "cubes": {e.id: len(e.cubes) for e in update.entities}, "octomap_bytes": len(octomap.data),
             "grid": grid.counts() if grid else None, "stamp_ns": stamp_ns}

@@ -32,6 +32,9 @@ class SourceOptions:
     every: int = 1
     min_range: float = 0.0
     bad_scans: str = "fail"  # a scan that cannot be read: "fail" (stop with its error) or "skip" (warn, go on)
+    # the map's local origin in the source's frame (subtracted from every point and sensor origin
+    # in float64, before the float32 rounding); "auto": resolve_origin() picks one
+    origin: tuple[float, float, float] | str | None = None
 
     def __post_init__(self) -> None:
         if self.bad_scans not in BAD_SCAN_POLICIES:
@@ -89,9 +92,17 @@ def _numeric_key(path: Path) -> tuple:
 
 def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source: str, raw_bytes: int,
               options: SourceOptions, world_frame_points: bool = False) -> Scan:
-    """Drop non-finite points, move sensor-frame points to the world, drop those below min range."""
+    """Drop non-finite points, move sensor-frame points to the world (about the local origin,
+    if any), drop those below min range."""
     finite = np.isfinite(points).all(axis=1)
     kept = points[finite]
+    if options.origin is not None:
+        if isinstance(options.origin, str):
+            raise ParameterError(f"--origin {options.origin} was not resolved (resolve_origin) before reading {source}")
+        shift = np.asarray(options.origin, dtype=np.float64)
+        pose = Pose(np.eye(3), -shift).compose(pose)  # world - origin, all in float64
+        if world_frame_points:
+            kept = np.asarray(kept, dtype=np.float64) - shift
     world = np.asarray(kept, dtype=np.float32) if world_frame_points else pose.apply(kept)
     origin = pose.translation.astype(np.float32)
     dropped_min = 0
@@ -285,6 +296,38 @@ def detect_kind(path: Path) -> str:
     if kind not in SOURCES:
         raise SourceError(f"{path}: unknown source type '{path.suffix}' (known: {', '.join(sorted(SOURCES))}, or a directory)")
     return kind
+
+
+def parse_origin(text: str | None) -> tuple[float, float, float] | str | None:
+    """--origin auto|X,Y,Z as SourceOptions.origin."""
+    if text is None or text == "auto":
+        return text
+    try:
+        xyz = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        xyz = ()
+    if len(xyz) != 3 or not np.all(np.isfinite(xyz)):
+        raise ParameterError(f"--origin {text}: give auto or three numbers X,Y,Z (metres, in the scans' frame)")
+    return xyz
+
+
+def resolve_origin(path: str | Path, options: SourceOptions, resolution: float) -> SourceOptions:
+    """Options with a usable local origin: X,Y,Z snapped to the voxel grid (a multiple of the
+    resolution, so voxels keep their places in the scans' frame and the map is OctoMap's map of
+    the shifted scans); "auto": the first scan's sensor position, snapped likewise."""
+    from dataclasses import replace
+
+    if options.origin is None:
+        return options
+    if isinstance(options.origin, str):
+        first = next(iter(open_source(path, replace(options, origin=None, start=0, stop=1, every=1)).scans), None)
+        if first is None:
+            raise SourceError(f"{path}: --origin auto: the source holds no scan to take the origin from")
+        where = np.asarray(first.origin, dtype=np.float64)
+    else:
+        where = np.asarray(options.origin, dtype=np.float64)
+    snapped = np.round(where / resolution) * resolution
+    return replace(options, origin=tuple(float(v) for v in snapped))
 
 
 def open_source(path: str | Path, options: SourceOptions | None = None) -> ScanStream:

@@ -1,0 +1,151 @@
+"""Scans far from their frame's origin (a city or UTM frame) build about a local origin
+(--origin): the map is OctoMap's map of the shifted scans, the origin is recorded and reported,
+and point outputs go back to the scans' frame without float32 blur."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import cli
+from scenes import box_scene, write_pcd, yaw_quat
+
+from voxtool.api import load_leaves
+from voxtool.geometry import Pose
+from voxtool.keys import expand_leaves
+
+RES = 0.1
+FAR = np.array([512_345.678, 5_401_234.321, 87.65])  # metres: a UTM position (zone easting, northing)
+
+
+@pytest.fixture(scope="module")
+def far_scans(tmp_path_factory):
+    """A PCD directory of box-room scans whose poses sit at FAR, and the scans as (sensor
+    points, pose)."""
+    d = tmp_path_factory.mktemp("far")
+    scans = []
+    for i, (pts, origin, yaw) in enumerate(box_scene(4, 500, seed=8)):
+        q = yaw_quat(yaw)
+        t = origin + FAR
+        write_pcd(d / f"{i}.pcd", pts, (*t, *q))
+        scans.append((pts, Pose.from_quat(t, *q)))
+    return d, scans
+
+
+def voxel_set(leaves, thr):
+    occ = leaves.values > np.float32(thr)
+    return np.sort(expand_leaves(leaves.codes[occ], leaves.depths[occ])), np.sort(
+        expand_leaves(leaves.codes[~occ], leaves.depths[~occ]))
+
+
+def test_far_scans_are_refused_with_the_option_named(far_scans, tmp_path):
+    code, _, err = cli("build", far_scans[0], "-o", tmp_path / "m.vxm", "--resolution", RES, "--no-progress")
+    assert code == 4 and err.count("\n") == 1 and "--origin auto" in err, err
+    assert not (tmp_path / "m.vxm").exists()
+
+
+def test_the_map_about_a_local_origin_is_octomaps_map_of_the_shifted_scans(far_scans, tmp_path):
+    """OctoMap (pyoctomap) inserts the scans moved by -origin (the pose's translation less the
+    origin, float64, then float32 points as insertPointCloud takes them); voxtool's map with
+    --origin auto has the same voxels, and its .bt (local frame) reads the same in OctoMap."""
+    pyoctomap = pytest.importorskip("pyoctomap")
+    d, scans = far_scans
+    out = tmp_path / "m.vxm"
+    code, text, err = cli("build", d, "-o", out, "--resolution", RES, "--origin", "auto", "--json", "--no-progress")
+    assert code == 0, err
+    origin = np.array(json.loads(text)["origin"])
+    # auto: the first scan's sensor position snapped to the voxel grid
+    assert np.allclose(origin, np.round(scans[0][1].translation / RES) * RES, atol=1e-6)
+    assert np.allclose(origin / RES, np.round(origin / RES), atol=1e-6)
+    tree = pyoctomap.OcTree(RES)
+    for pts, pose in scans:
+        shifted = Pose(pose.rotation, pose.translation - origin)
+        world = shifted.apply(pts).astype(np.float64)
+        tree.insertPointCloud(world, shifted.translation.astype(np.float32).astype(np.float64))
+    tree.writeBinary(str(tmp_path / "octomap.bt"))
+    ours, _, thr, _ = load_leaves(out)
+    theirs, _, bt_thr, _ = load_leaves(tmp_path / "octomap.bt")
+    occ, free = voxel_set(ours, thr)
+    t_occ, t_free = voxel_set(theirs, bt_thr)
+    assert occ.size > 1000 and np.array_equal(occ, t_occ) and np.array_equal(free, t_free)
+    code, text, _ = cli("stats", out, "--json")
+    assert json.loads(text)["origin"] == pytest.approx(origin.tolist())
+    assert "local origin" in cli("stats", out)[1]
+
+
+def test_point_outputs_are_in_the_scans_frame_in_float64(far_scans, tmp_path):
+    d, _ = far_scans
+    out = tmp_path / "m.vxm"
+    assert cli("build", d, "-o", out, "--resolution", RES, "--origin", "auto", "--no-progress")[0] == 0
+    leaves, _, thr, meta = load_leaves(out)
+    origin = np.array(meta["info"]["origin"])
+    from voxtool.io.export import voxel_centres
+
+    local = voxel_centres(leaves, leaves.values > np.float32(thr), RES).astype(np.float64)
+    ply = tmp_path / "m.ply"
+    assert cli("export", out, "-o", ply)[0] == 0
+    import open3d as o3d
+
+    def read(path):  # Open3D's tensor reader keeps float64 (its legacy PCD reader reads doubles as 0)
+        return o3d.t.io.read_point_cloud(str(path)).point.positions.numpy()
+
+    cloud = read(ply)  # a reader voxtool did not write
+    assert b"property double x" in ply.read_bytes()[:300]
+    assert cloud.shape == local.shape and np.abs(cloud - (local + origin)).max() < 1e-6
+    pcd = tmp_path / "m.pcd"
+    assert cli("export", out, "-o", pcd)[0] == 0
+    assert read(pcd).dtype == np.float64 and np.abs(read(pcd) - (local + origin)).max() < 1e-6
+    # the .mcap: the scene and the grid in the scans' frame, the Octomap in map_local below it
+    from test_viewer_mcap import read_ros2
+
+    assert cli("export", out, "-o", tmp_path / "m.mcap")[0] == 0
+    got = read_ros2(tmp_path / "m.mcap")
+    tf = got["/tf_static"][2].transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id) == ("map", "map_local")
+    assert [tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z] == pytest.approx(
+        origin.tolist())
+    assert got["/octomap_binary"][2].header.frame_id == "map_local"
+    cubes = got["/voxtool/map"][2].entities[0].cubes
+    centre = np.array([[c.pose.position.x, c.pose.position.y, c.pose.position.z] for c in cubes])
+    assert np.all(np.abs(centre - FAR).max(axis=1) < 10)
+    grid = got["/projected_map"][2]
+    assert abs(grid.info.origin.position.x - FAR[0]) < 10 and abs(grid.info.origin.position.y - FAR[1]) < 10
+
+
+def test_clean_about_a_local_origin_writes_the_scans_frame(far_scans, tmp_path):
+    d, scans = far_scans
+    code, text, err = cli("clean", d, "-o", tmp_path / "s.ply", "--origin", "auto", "--json", "--no-progress")
+    assert code == 0, err
+    assert np.allclose(json.loads(text)["origin"], np.round(scans[0][1].translation / RES) * RES, atol=1e-6)
+    import open3d as o3d
+
+    kept = o3d.t.io.read_point_cloud(str(tmp_path / "s.ply")).point.positions.numpy()
+    # the scans' points as clean judged them (float32 about the origin), moved back in float64
+    origin = np.array(json.loads(text)["origin"])
+    every = np.concatenate([Pose(pose.rotation, pose.translation - origin).apply(pts).astype(np.float64) + origin
+                            for pts, pose in scans])
+    assert 0 < len(kept) <= len(every)
+    assert set(map(tuple, kept.tolist())) <= set(map(tuple, every.tolist()))
+
+
+def test_query_and_diff_use_the_scans_frame(far_scans, tmp_path):
+    d, scans = far_scans
+    a, b = tmp_path / "a.vxm", tmp_path / "b.vxm"
+    assert cli("build", d, "-o", a, "--resolution", RES, "--origin", "auto", "--no-progress")[0] == 0
+    from voxtool.voxelmap import load
+
+    vmap = load(a)
+    leaves, _, thr, _ = load_leaves(a)
+    from voxtool.io.export import voxel_centres
+
+    occupied = voxel_centres(leaves, leaves.values > np.float32(thr), RES).astype(np.float64) + vmap.origin
+    assert (vmap.query(occupied)["state"] == 2).all()  # every occupied centre, asked in the scans' frame
+    code, text, _ = cli("query", a, "--json", "--", *occupied[0])
+    assert code == 0 and json.loads(text)["state"] == "occupied"
+    x, y, z = (float(v) + 0.3 for v in vmap.origin)
+    assert cli("build", d, "-o", b, "--resolution", RES, "--origin", f"{x},{y},{z}", "--no-progress")[0] == 0
+    code, _, err = cli("diff", a, b)
+    assert code == 2 and "same --origin" in err, err
+    code, _, err = cli("build", d, "-o", b, "--resolution", RES, "--origin", "1,2", "--no-progress")
+    assert code == 2 and "--origin 1,2" in err
