@@ -1,14 +1,16 @@
-"""A long ROS 2 bag at full sensor rate: does `voxtool build` stream it in bounded memory, at a
-steady speed?
+"""A long ROS 2 or ROS 1 bag at full sensor rate: does `voxtool build` stream it in bounded
+memory, at a steady speed?
 
     python benchmarks/bench_bag.py [--data ../shared/data] [--scans 2000] [--resolution 0.5]
                                    [--bag bench-results/long.mcap] [--out bench-results/bag.json]
+    python benchmarks/bench_bag.py --bag bench-results/long.bag --out bench-results/bag1.json   # ROS 1
 
 The bag: kaist03's 21 real Ouster OS1-64 scans (../shared/data/kaist03/pcd, sensor frame)
 played in turn at 10 Hz until `--scans` messages, each pass moved 4 m further round a circle of
 radius 20 m (so the map keeps growing slowly, as on a robot that revisits its area), as
 sensor_msgs/msg/PointCloud2 on /points with a /tf world -> lidar transform per scan: a ROS 2
-MCAP as a recorder writes it (zstd chunks), serialized by rosbags. It is written once and kept.
+MCAP as a recorder writes it (zstd chunks), serialized by rosbags, or with a `.bag` name a ROS 1
+bag written by rosbags' rosbag1 writer. It is written once and kept.
 
 Then the build (`voxtool build BAG --resolution R -o map.vxm`'s library call, with its progress
 bar, so that the per-scan latencies come back) runs as its own process: the
@@ -31,48 +33,78 @@ from pathlib import Path
 import numpy as np
 
 
-def write_bag(pcd_dir: Path, scans: int, path: Path) -> None:
-    from mcap.writer import CompressionType, Writer
-    from rosbags.typesys import Stores, get_typestore
-
+def bag_messages(pcd_dir: Path, scans: int, store):
+    """(topic, message type, time ns, message) of the long bag, in time order: a /tf world ->
+    lidar transform and a PointCloud2 per scan (the same for ROS 1 and ROS 2: only a ROS 1
+    header has a seq)."""
     from voxtool.sources.pcd import read_pcd
 
-    store = get_typestore(Stores.ROS2_HUMBLE)
     T = store.types
     clouds = [read_pcd(f) for f in sorted(pcd_dir.glob("*.pcd"))]
     fields = [T["sensor_msgs/msg/PointField"](name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate("xyz")]
-    tmp = path.with_suffix(".partial")
+    ros1 = "seq" in store.fielddefs["std_msgs/msg/Header"][1][0]
+
+    def header(stamp, frame, seq):
+        return T["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame) if ros1 else \
+            T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    for i in range(scans):
+        cloud = clouds[i % len(clouds)]
+        lap = i // len(clouds)
+        vp = cloud.viewpoint  # tx ty tz qw qx qy qz: the scan's own pose in its drive
+        angle = 4.0 / 20.0 * lap
+        shift = np.array([20.0 * math.cos(angle) - 20.0, 20.0 * math.sin(angle), 0.0])
+        t = np.asarray(vp[:3], float) + shift
+        ns = 1_700_000_000 * 10**9 + i * 100_000_000
+        stamp = T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
+        tf = T["geometry_msgs/msg/TransformStamped"](
+            header=header(stamp, "world", i), child_frame_id="lidar",
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](x=t[0], y=t[1], z=t[2]),
+                rotation=T["geometry_msgs/msg/Quaternion"](x=vp[4], y=vp[5], z=vp[6], w=vp[3])))
+        yield "/tf", "tf2_msgs/msg/TFMessage", ns, T["tf2_msgs/msg/TFMessage"](transforms=[tf])
+        xyz = np.ascontiguousarray(cloud.xyz, dtype="<f4")
+        yield "/points", "sensor_msgs/msg/PointCloud2", ns, T["sensor_msgs/msg/PointCloud2"](
+            header=header(stamp, "lidar", i), height=1, width=len(xyz), fields=fields, is_bigendian=False,
+            point_step=12, row_step=12 * len(xyz), data=xyz.view(np.uint8).ravel(), is_dense=True)
+
+
+def write_bag(pcd_dir: Path, scans: int, path: Path) -> None:
+    """A ROS 2 MCAP (zstd chunks) or, for a .bag path, a ROS 1 bag (as rosbag record writes it,
+    uncompressed chunks), written by the mcap library or rosbags."""
+    from rosbags.typesys import Stores, get_typestore
+
+    tmp = path.with_name(path.name + ".partial")
+    if path.suffix == ".bag":
+        from rosbags.rosbag1 import Writer as Ros1Writer
+        from rosbags.typesys import get_types_from_msg
+
+        store = get_typestore(Stores.ROS1_NOETIC)
+        if "tf2_msgs/msg/TFMessage" not in store.fielddefs:  # not in rosbags' Noetic store: ROS's definition
+            store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
+        tmp.unlink(missing_ok=True)
+        with Ros1Writer(tmp) as w:
+            conns = {}
+            for topic, msgtype, ns, msg in bag_messages(pcd_dir, scans, store):
+                if topic not in conns:
+                    conns[topic] = w.add_connection(topic, msgtype, typestore=store)
+                w.write(conns[topic], ns, store.serialize_ros1(msg, msgtype))
+        tmp.replace(path)
+        return
+    from mcap.writer import CompressionType, Writer
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
     with open(tmp, "wb") as f:
         w = Writer(f, compression=CompressionType.ZSTD)
         w.start(profile="ros2", library="voxtool bench_bag")
-        ids = {}
-        for topic, msgtype in (("/points", "sensor_msgs/msg/PointCloud2"), ("/tf", "tf2_msgs/msg/TFMessage")):
-            text, _ = store.generate_msgdef(msgtype, ros_version=2)
-            schema = w.register_schema(name=msgtype, encoding="ros2msg", data=text.encode())
-            ids[topic] = w.register_channel(topic=topic, message_encoding="cdr", schema_id=schema)
-        for i in range(scans):
-            cloud = clouds[i % len(clouds)]
-            lap = i // len(clouds)
-            vp = cloud.viewpoint  # tx ty tz qw qx qy qz: the scan's own pose in its drive
-            angle = 4.0 / 20.0 * lap
-            shift = np.array([20.0 * math.cos(angle) - 20.0, 20.0 * math.sin(angle), 0.0])
-            t = np.asarray(vp[:3], float) + shift
-            ns = 1_700_000_000 * 10**9 + i * 100_000_000
-            stamp = T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
-            tf = T["geometry_msgs/msg/TransformStamped"](
-                header=T["std_msgs/msg/Header"](stamp=stamp, frame_id="world"), child_frame_id="lidar",
-                transform=T["geometry_msgs/msg/Transform"](
-                    translation=T["geometry_msgs/msg/Vector3"](x=t[0], y=t[1], z=t[2]),
-                    rotation=T["geometry_msgs/msg/Quaternion"](x=vp[4], y=vp[5], z=vp[6], w=vp[3])))
-            w.add_message(ids["/tf"], log_time=ns, publish_time=ns, sequence=i,
-                          data=store.serialize_cdr(T["tf2_msgs/msg/TFMessage"](transforms=[tf]), "tf2_msgs/msg/TFMessage"))
-            xyz = np.ascontiguousarray(cloud.xyz, dtype="<f4")
-            msg = T["sensor_msgs/msg/PointCloud2"](
-                header=T["std_msgs/msg/Header"](stamp=stamp, frame_id="lidar"), height=1, width=len(xyz),
-                fields=fields, is_bigendian=False, point_step=12, row_step=12 * len(xyz),
-                data=xyz.view(np.uint8).ravel(), is_dense=True)
-            w.add_message(ids["/points"], log_time=ns, publish_time=ns, sequence=i,
-                          data=store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
+        ids, seq = {}, 0
+        for topic, msgtype, ns, msg in bag_messages(pcd_dir, scans, store):
+            if topic not in ids:
+                text, _ = store.generate_msgdef(msgtype, ros_version=2)
+                schema = w.register_schema(name=msgtype, encoding="ros2msg", data=text.encode())
+                ids[topic] = w.register_channel(topic=topic, message_encoding="cdr", schema_id=schema)
+            w.add_message(ids[topic], log_time=ns, publish_time=ns, sequence=seq, data=store.serialize_cdr(msg, msgtype))
+            seq += 1
         w.finish()
     tmp.replace(path)
 

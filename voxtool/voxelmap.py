@@ -78,7 +78,6 @@ class VoxelMap:
     def export(self, path: str | os.PathLike, include_free: bool = False) -> dict:
         """Write as .bt, .ply, .pcd, .png or .mcap (the suffix decides); returns what was written."""
         from voxtool.api import exporter
-
         from voxtool.io.export import TAKES_ORIGIN
 
         extra = {"origin": tuple(self.origin)} if self.origin.any() and Path(path).suffix.lower() in TAKES_ORIGIN else {}
