@@ -102,7 +102,7 @@ def test_figure_has_metric_axes_colour_bar_legend_and_scale_bar(sample_map):
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["free", "unknown"]
     bars = [a for a in ax.artists if isinstance(a, AnchoredSizeBar)]
     assert len(bars) == 1 and bars[0].txt_label.get_text().endswith(" m")
-    caption = " ".join(t.get_text() for t in fig.texts)
+    caption = " ".join(t.get_text() for t in fig.texts) + (fig._supxlabel.get_text() if fig._supxlabel else "")
     assert f"resolution {res:g} m" in caption and f"{int((raster.state == picture.OCCUPIED).sum()):,} occupied" in caption
 
 
@@ -119,3 +119,23 @@ def test_cli_png_is_readable_and_free_is_refused(sample_map, tmp_path):
     assert image.shape[:2] == (report["height"], report["width"]) and report["view"] == "side"
     code, _, err = cli("export", sample_map[0], "-o", tmp_path / "f.png", "--free")
     assert code != 0 and "--free is for .ply/.pcd" in err and not (tmp_path / "f.png").exists()
+
+
+@pytest.mark.parametrize("view", ["top", "front"])
+def test_the_caption_does_not_overlap_the_tick_labels(sample_map, view):
+    """The caption sits below the x tick labels and the x label, in the drawn figure (it once
+    overlapped them: a figure text the layout did not make room for)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    leaves, res, thr, _ = load_leaves(sample_map[0])
+    fig = picture.figure(picture.picture(leaves, res, thr, view), res, "sample")
+    for extra in fig.axes[1:]:  # as diff and eval pictures do: no colour bar
+        extra.remove()
+    FigureCanvasAgg(fig).draw()
+    renderer = fig.canvas.get_renderer()
+    caption = next(t for t in [*fig.texts, fig._supxlabel] if t is not None and "resolution" in t.get_text())
+    box = caption.get_window_extent(renderer)
+    ax = fig.axes[0]
+    for other in [*ax.get_xticklabels(), ax.xaxis.label]:
+        if other.get_text():
+            assert not box.overlaps(other.get_window_extent(renderer)), other.get_text()

@@ -356,6 +356,19 @@ def crop_keys(box, resolution: float) -> tuple[np.ndarray, np.ndarray]:
     return np.clip(lo, 0, 2 * TREE_MAX_VAL - 1), np.clip(hi, -1, 2 * TREE_MAX_VAL - 1)
 
 
+def export_scans(source: str | os.PathLike, output: str | os.PathLike, options: SourceOptions | None = None,
+                 progress: bool | None = False) -> dict:
+    """A scan source (any that `build` reads) written as an OctoMap ScanGraph (.graph), for
+    OctoMap's own tools on the same input (sources.graph.write_graph)."""
+    from voxtool.atomic import check_writable
+    from voxtool.sources.graph import write_graph
+
+    if Path(output).suffix.lower() != ".graph":
+        raise ParameterError(f"{output}: scans are exported as an OctoMap .graph")
+    check_writable(output)
+    return write_graph(output, open_source(source, options or SourceOptions()), progress)
+
+
 def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False,
                progress: bool | None = False, ros2_only: bool = False, view: str | None = None,
                slice_z: float | None = None, crop: tuple | None = None,

@@ -30,7 +30,6 @@ PICTURE_KINDS = [
     ("no longer occupied", (3 * K.OCCUPIED + K.FREE, 3 * K.OCCUPIED + K.UNKNOWN), (0.15, 0.35, 0.85)),
     ("newly occupied", (3 * K.FREE + K.OCCUPIED, 3 * K.UNKNOWN + K.OCCUPIED), (0.85, 0.10, 0.10)),
 ]
-B_OCCUPIED_RGB = (0.55, 0.55, 0.55)
 
 
 @dataclass
@@ -229,59 +228,18 @@ def write_changed_cloud(path: Path, result: MapDiff) -> dict:
 def write_diff_png(path: Path, result: MapDiff, view: str = "top", label: str = "") -> dict:
     """A picture of where the maps differ, over map B drawn in grey (export .png's conventions:
     view, axes in metres, scale bar, caption), with a legend of the change kinds."""
-    from matplotlib.patches import Patch
+    from voxtool.io.picture import write_overlay_png
 
-    from voxtool.io.picture import (
-        FREE,
-        FREE_RGB,
-        OCCUPIED,
-        UNKNOWN_RGB,
-        Raster,
-        check_options,
-        figure,
-        key_bounds,
-        save,
-    )
-
-    check_options(view, None)
     changed = result.changed()
-    bounds = key_bounds(changed)
-    if bounds is None:
+    if len(changed) == 0:
         raise ParameterError(f"{path}: the maps do not differ: there is nothing to draw")
-    margin = max(8, int((bounds[1] - bounds[0]).max() // 10))
-    kmin, kmax = bounds[0] - margin, bounds[1] + margin
-    base = Raster.covering(view, kmin, kmax)
-    for leaves, threshold in _background(result.b_map):
-        base.add(leaves, threshold)
     layers = []
     for name, members, rgb in PICTURE_KINDS:
-        raster = Raster.covering(view, kmin, kmax)
         pick = np.isin(changed.values.astype(np.int64), members)
-        raster.add(Leaves(changed.codes[pick], changed.depths[pick], np.ones(int(pick.sum()), np.float32)), 0.0)
-        layers.append((name, raster.state == OCCUPIED, rgb, int(result.counts[list(members)].sum())))
-    fig = figure(base, result.resolution, label or f"changes from A to B, over B ({result.b_map.path.name})")
-    ax = fig.axes[0]
-    image = ax.images[0]
-    state = base.state.reshape(base.height, base.width)
-    pixels = np.empty((base.height, base.width, 3))
-    pixels[:] = UNKNOWN_RGB
-    pixels[state == FREE] = FREE_RGB
-    pixels[state == OCCUPIED] = B_OCCUPIED_RGB  # map B in grey: where the changes are
-    for _, mask, rgb, _ in layers:
-        pixels[mask.reshape(base.height, base.width)] = rgb
-    image.set_data(pixels)
-    for extra in fig.axes[1:]:  # the height colour bar belongs to the plain map's picture
-        extra.remove()
-    handles = [Patch(facecolor=rgb, edgecolor="0.5", label=f"{name} ({count:,} voxels)") for name, _, rgb, count in layers]
-    handles += [Patch(facecolor=B_OCCUPIED_RGB, edgecolor="0.5", label="B occupied"),
-                Patch(facecolor=FREE_RGB, edgecolor="0.5", label="B free"),
-                Patch(facecolor=UNKNOWN_RGB, edgecolor="0.5", label="unknown")]
-    ax.legend(handles=handles, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=3, fontsize=8, frameon=False)
-    width, height = save(fig, path)
-    state = base.state
-    return {"format": "png", "view": view, "width": width, "height": height,
-            "changed_pixels": int(sum(m.sum() for _, m, _, _ in layers)),
-            "background_known_pixels": int(((state == FREE) | (state == OCCUPIED)).sum())}
+        layers.append((name, Leaves(changed.codes[pick], changed.depths[pick], np.ones(int(pick.sum()), np.float32)),
+                       rgb, int(result.counts[list(members)].sum())))
+    return write_overlay_png(path, _background(result.b_map), layers, result.resolution, view,
+                             label or f"changes from A to B, over B ({result.b_map.path.name})", "B")
 
 
 def _background(m: _Map) -> Iterator[tuple[Leaves, float]]:

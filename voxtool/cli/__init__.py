@@ -26,6 +26,7 @@ from voxtool.cli.compile import compile_cmd  # noqa: E402
 from voxtool.cli.decode import decode  # noqa: E402
 from voxtool.cli.diff import diff  # noqa: E402
 from voxtool.cli.encode import encode  # noqa: E402
+from voxtool.cli.eval import eval_cmd  # noqa: E402
 from voxtool.cli.export import export  # noqa: E402
 from voxtool.cli.merge import merge  # noqa: E402
 from voxtool.cli.query import query  # noqa: E402
@@ -63,11 +64,12 @@ def main() -> None:
 
     Exit codes: 0 ok, 1 error, 2 bad parameter, 3 bad source, 4 point outside the key range,
     5 bad map/packet file, 6 regression found by `stats --compare`, 7 more changes than
-    `diff --max-changed`, 130 interrupted.
+    `diff --max-changed`, 8 held-out scans below `eval --min-correct`, 130 interrupted.
     """
 
 
-for _command in (build, clean, cache_bench_cmd, encode, decode, merge, query, stats, diff, export, view, compile_cmd):
+for _command in (build, clean, eval_cmd, cache_bench_cmd, encode, decode, merge, query, stats, diff, export, view,
+                 compile_cmd):
     main.add_command(_command)
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors
+from voxtool.cli.common import emit, handle_errors, source_options, source_setup
 
 
 @click.command()
@@ -30,18 +30,27 @@ from voxtool.cli.common import emit, handle_errors
               help=".pgm/.mcap 2D grid: project the voxels whose centres lie at these heights (metres; default: all): "
                    "a cell is occupied where any of them is occupied, free where all known ones are free, unknown "
                    "elsewhere (octomap_server's projected_map).")
+@source_options
 @click.option("--json", "as_json", is_flag=True, help="Print what was written as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_range, as_json, progress):  # noqa: ARG001
+def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_range, as_json, progress,  # noqa: ARG001
+           **kw):
     """Export a map snapshot (.vxm) or an OctoMap .bt: .bt (OctoMap binary, the max-likelihood
     tree), .ply/.pcd (voxel centres), .png (a picture with colour bar, legend, scale bar and axes
     in metres; --view, --slice), .mcap (for Foxglove, RViz and rosbags), or import an OctoMap .bt
     as a snapshot (.vxm), or a 2D occupancy grid for navigation (.pgm + .yaml, nav2
-    map_server's format; --z-range). A sharded map (a directory) is exported part by part (.bt, .ply, .pcd,
+    map_server's format; --z-range). A scan source (what `build` reads) exported as an OctoMap
+    ScanGraph (.graph) runs in OctoMap's own tools (eval_octree_accuracy, graph2tree); the source
+    options below are for it. A sharded map (a directory) is exported part by part (.bt, .ply, .pcd,
     .png), in the memory of its largest part."""
-    from voxtool.api import export_map
+    from voxtool.api import export_map, export_scans
     from voxtool.errors import ParameterError
+
+    options = source_setup(kw)  # only a scan source exported as .graph reads them
+    if output.suffix.lower() == ".graph":
+        emit(export_scans(map_file, output, options, progress), as_json, [], written=output)
+        return
 
     box = None
     if crop is not None:

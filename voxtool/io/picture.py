@@ -171,8 +171,9 @@ def figure(raster: Raster, resolution: float, label: str):
                                           loc="lower left", fontsize=letters, sep_x=arrow / 10, sep_y=arrow / 10,
                                           back_length=0, color="k", head_width=6, head_length=8, tail_width=1.5))
     step = resolution * (1 << raster.shift)
-    fig.text(0.01, 0.005, f"{label} · resolution {resolution:g} m · 1 pixel = {step:g} m · "
-                          f"{int(occupied.sum()):,} occupied pixels", fontsize=8, ha="left", va="bottom")
+    # a figure-level x label: the constrained layout keeps room for it below the tick labels
+    fig.supxlabel(f"{label} · resolution {resolution:g} m · 1 pixel = {step:g} m · "
+                  f"{int(occupied.sum()):,} occupied pixels", fontsize=8, x=0.01, ha="left")
     return fig
 
 
@@ -249,3 +250,52 @@ def picture_of_parts(path: Path, output: Path, include_free: bool, progress=Fals
         raster.add(backend.leaves(), backend.sensor.threshold_log)
     width, height = save(figure(raster, resolution, label or path.name), output)
     return {**figures(raster), "width": width, "height": height}
+
+
+BACKGROUND_OCCUPIED_RGB = (0.55, 0.55, 0.55)
+
+
+def write_overlay_png(path: Path, background, layers: list, resolution: float, view: str = "top", label: str = "",
+                      background_name: str = "map") -> dict:
+    """Coloured voxels over a map drawn in grey (export .png's conventions: view, axes in metres,
+    scale bar, caption), framed on the coloured voxels, with a legend. `background`: the map's
+    (leaves, threshold) part by part; `layers`: (name, leaves, rgb, count) drawn in order (the
+    last wins a pixel)."""
+    from matplotlib.patches import Patch
+
+    check_options(view, None)
+    spans = [b for b in (key_bounds(leaves) for _, leaves, _, _ in layers) if b is not None]
+    if not spans:
+        raise ParameterError(f"{path}: nothing to draw")
+    bounds = (np.min([b[0] for b in spans], axis=0), np.max([b[1] for b in spans], axis=0))
+    margin = max(8, int((bounds[1] - bounds[0]).max() // 10))
+    kmin, kmax = bounds[0] - margin, bounds[1] + margin
+    base = Raster.covering(view, kmin, kmax)
+    for leaves, threshold in background:
+        base.add(leaves, threshold)
+    masks = []
+    for name, leaves, rgb, count in layers:
+        raster = Raster.covering(view, kmin, kmax)
+        raster.add(Leaves(leaves.codes, leaves.depths, np.ones(len(leaves), np.float32)), 0.0)
+        masks.append((name, raster.state == OCCUPIED, rgb, count))
+    fig = figure(base, resolution, label)
+    ax = fig.axes[0]
+    state = base.state.reshape(base.height, base.width)
+    pixels = np.empty((base.height, base.width, 3))
+    pixels[:] = UNKNOWN_RGB
+    pixels[state == FREE] = FREE_RGB
+    pixels[state == OCCUPIED] = BACKGROUND_OCCUPIED_RGB
+    for _, mask, rgb, _ in masks:
+        pixels[mask.reshape(base.height, base.width)] = rgb
+    ax.images[0].set_data(pixels)
+    for extra in fig.axes[1:]:  # the height colour bar belongs to the plain map's picture
+        extra.remove()
+    handles = [Patch(facecolor=rgb, edgecolor="0.5", label=f"{name} ({count:,} voxels)") for name, _, rgb, count in masks]
+    handles += [Patch(facecolor=BACKGROUND_OCCUPIED_RGB, edgecolor="0.5", label=f"{background_name} occupied"),
+                Patch(facecolor=FREE_RGB, edgecolor="0.5", label=f"{background_name} free"),
+                Patch(facecolor=UNKNOWN_RGB, edgecolor="0.5", label="unknown")]
+    ax.legend(handles=handles, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=3, fontsize=8, frameon=False)
+    width, height = save(fig, path)
+    return {"format": "png", "view": view, "width": width, "height": height,
+            "changed_pixels": int(sum(m.sum() for _, m, _, _ in masks)),
+            "background_known_pixels": int(((base.state == FREE) | (base.state == OCCUPIED)).sum())}

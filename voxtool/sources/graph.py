@@ -64,3 +64,32 @@ def iter_graph(path: str | Path) -> Iterator[tuple[np.ndarray, Pose, int]]:
             if not np.all(np.isfinite([tx, ty, tz, qw, qx, qy, qz])) or np.linalg.norm([qw, qx, qy, qz]) < 1e-6:
                 raise SourceError(f"{path}: ScanGraph node {node} pose is not finite or its quaternion is zero")
             yield rec["xyz"], Pose.from_quat((tx, ty, tz), qw, qx, qy, qz), 4 + npts * 28 + 68
+
+
+def write_graph(path: str | Path, stream, progress: bool | None = None) -> dict:
+    """A scan source as an OctoMap ScanGraph, atomically, so that OctoMap's own tools
+    (eval_octree_accuracy, graph2tree) read the same scans. Each node holds its scan in a frame
+    parallel to the world at the sensor origin: points = world - origin (float64), pose = the
+    origin with no rotation (voxtool's scans are world-frame float32 points and an origin); OctoMap
+    adds the two back in float32. Node ids are the scan indices; no edges."""
+    from voxtool.atomic import atomic_writer
+    from voxtool.progress import track
+
+    nodes = points = 0
+    point = np.dtype([("n", "<i4"), ("xyz", "<f8", (3,))])
+    with atomic_writer(path) as handle:
+        handle.write(struct.pack("<I", 0))  # the node count, filled in at the end
+        for scan in track(stream.scans, stream.count, "graph", progress, "scan"):
+            origin = scan.origin.astype(np.float64)
+            rec = np.empty(scan.points.shape[0], dtype=point)
+            rec["n"] = 3
+            rec["xyz"] = scan.points.astype(np.float64) - origin
+            handle.write(struct.pack("<I", rec.shape[0]) + rec.tobytes())
+            handle.write(struct.pack("<i3d", 3, *origin.tolist()) + struct.pack("<i4d", 4, 1.0, 0.0, 0.0, 0.0))
+            handle.write(struct.pack("<I", scan.index & 0xFFFFFFFF))
+            nodes += 1
+            points += rec.shape[0]
+        handle.write(struct.pack("<I", 0))  # no edges
+        handle.seek(0)
+        handle.write(struct.pack("<I", nodes))
+    return {"format": "graph", "nodes": nodes, "points": points}
