@@ -1,4 +1,4 @@
-"""`export --crop` (OctoMap edit_octree's crop): the voxels whose centres lie in the box, for
+"""`export --crop`: the voxels whose centres lie in the box (edges inclusive), for
 every output type, against a brute-force filter of the uncropped export."""
 
 from __future__ import annotations
@@ -66,3 +66,22 @@ def test_crop_of_a_picture_and_bad_boxes(sample_map, tmp_path):
         assert code == 2 and "--crop" in err and not (tmp_path / "x.ply").exists()
     code, _, err = cli("export", out, "-o", tmp_path / "x.png", "--crop", "500,500,500,501,501,501")
     assert code == 2 and "no voxel" in err
+
+
+def test_box_edges_on_voxel_centres_are_inclusive(sample_map, tmp_path):
+    """Edges lying exactly on voxel centres (x = -19.9 is the centre of a 0.2 m voxel, but
+    -19.9 / 0.2 is not exactly -99.5 in floating point) keep those voxels: the crop equals an
+    inclusive filter of the uncropped export's centres (it once lost whole layers)."""
+    import open3d as o3d
+
+    out, _ = sample_map
+    box = (-19.9, -20.1, -1.9, 20.1, 19.9, 4.9)
+    full, cut = tmp_path / "full.ply", tmp_path / "cut.ply"
+    assert cli("export", out, "-o", full, "--free")[0] == 0
+    assert cli("export", out, "-o", cut, "--free", "--crop", ",".join(map(str, box)))[0] == 0
+    a = np.asarray(o3d.io.read_point_cloud(str(full)).points)
+    b = np.asarray(o3d.io.read_point_cloud(str(cut)).points)
+    keep = np.all((a >= np.array(box[:3]) - 1e-4) & (a <= np.array(box[3:]) + 1e-4), axis=1)
+    on_edge = np.any(np.isclose(a, np.array(box[:3]), atol=1e-4) | np.isclose(a, np.array(box[3:]), atol=1e-4), axis=1)
+    assert (keep & on_edge).sum() > 1000  # the edges do lie on centres
+    assert len(b) == int(keep.sum())

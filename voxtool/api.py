@@ -345,14 +345,13 @@ def exporter(output: Path):
 def crop_keys(box, resolution: float) -> tuple[np.ndarray, np.ndarray]:
     """The key box of the voxels whose centres lie in a metric box (xmin, ymin, zmin, xmax,
     ymax, zmax), inclusive."""
-    from voxtool.keys import TREE_MAX_VAL
+    from voxtool.keys import TREE_MAX_VAL, centre_key_range
 
     box = np.asarray(box, dtype=np.float64)
     if box.shape != (6,) or not np.all(np.isfinite(box)) or np.any(box[:3] > box[3:]):
         raise ParameterError(f"--crop {','.join(f'{v:g}' for v in np.ravel(box))}: give xmin,ymin,zmin,xmax,ymax,zmax "
                              "in metres, each min at most its max")
-    lo = np.ceil(box[:3] / resolution - 0.5).astype(np.int64) + TREE_MAX_VAL
-    hi = np.floor(box[3:] / resolution - 0.5).astype(np.int64) + TREE_MAX_VAL
+    lo, hi = centre_key_range(box[:3], box[3:], resolution)
     return np.clip(lo, 0, 2 * TREE_MAX_VAL - 1), np.clip(hi, -1, 2 * TREE_MAX_VAL - 1)
 
 

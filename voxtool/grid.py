@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from voxtool.errors import ParameterError
-from voxtool.keys import TREE_MAX_VAL, leaf_edge, morton_decode
+from voxtool.keys import TREE_MAX_VAL, centre_key_range, leaf_edge, morton_decode
 from voxtool.maps.base import Leaves
 
 UNKNOWN, FREE, OCCUPIED = -1, 0, 100  # nav_msgs/OccupancyGrid's cell values
@@ -55,8 +55,7 @@ def project(leaves: Leaves, resolution: float, threshold_log: float,
     keys = morton_decode(leaves.codes).astype(np.int64)
     edge = leaf_edge(leaves.depths)
     if z_range is not None:
-        z_lo = int(np.ceil(z_range[0] / resolution - 0.5)) + TREE_MAX_VAL  # the crop box's rule (api.crop_keys)
-        z_hi = int(np.floor(z_range[1] / resolution - 0.5)) + TREE_MAX_VAL
+        z_lo, z_hi = (int(k) for k in centre_key_range(z_range[0], z_range[1], resolution))  # --crop's rule
         inside = (keys[:, 2] <= z_hi) & (keys[:, 2] + edge - 1 >= z_lo)
         keys, edge, values = keys[inside], edge[inside], leaves.values[inside]
     else:

@@ -92,6 +92,18 @@ def coords_to_keys(points: np.ndarray, resolution: float, *, what: str = "point"
     return keys
 
 
+CENTRE_TOLERANCE = 1e-6  # of a voxel: a box edge this close to a voxel centre holds that voxel
+
+
+def centre_key_range(lo_m, hi_m, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """The keys of the voxels whose centres lie in [lo_m, hi_m] (metres, per axis), inclusive:
+    an edge on a centre (within a millionth of a voxel: -19.9 / 0.2 is not exactly -99.5 in
+    floating point) keeps that voxel. Unclipped (int64)."""
+    lo = np.ceil(np.asarray(lo_m, dtype=np.float64) / resolution - 0.5 - CENTRE_TOLERANCE).astype(np.int64)
+    hi = np.floor(np.asarray(hi_m, dtype=np.float64) / resolution - 0.5 + CENTRE_TOLERANCE).astype(np.int64)
+    return lo + TREE_MAX_VAL, hi + TREE_MAX_VAL
+
+
 def keys_to_coords(keys: np.ndarray, resolution: float) -> np.ndarray:
     """Voxel centres of uint16 keys (OctoMap's keyToCoord at full depth)."""
     return ((np.asarray(keys).astype(np.float64) - TREE_MAX_VAL) + 0.5) * resolution

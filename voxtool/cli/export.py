@@ -24,8 +24,10 @@ from voxtool.cli.common import emit, handle_errors, source_options, source_setup
 @click.option("--slice", "slice_z", type=float, default=None, metavar="Z",
               help=".png: only the voxel layer holding height Z (metres), seen from above.")
 @click.option("--crop", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
-              help="Only the voxels whose centres lie in this box (metres), for every output type (OctoMap "
-                   "edit_octree's crop). A sharded map is then read whole.")
+              help="Only the voxels whose centres lie in this box (metres, edges inclusive: an edge on a voxel "
+                   "centre keeps that voxel), for every output type; a leaf across the box's faces is split. A "
+                   "sharded map is then read whole. (OctoMap 1.10's edit_octree has no crop: its --bb is not "
+                   "implemented.)")
 @click.option("--z-range", metavar="MIN,MAX",
               help=".pgm/.mcap 2D grid: project the voxels whose centres lie at these heights (metres; default: all): "
                    "a cell is occupied where any of them is occupied, free where all known ones are free, unknown "

@@ -38,8 +38,8 @@ def max_likelihood(leaves: Leaves, threshold_log: float) -> Leaves:
 def crop(leaves: Leaves, lo_key: np.ndarray, hi_key: np.ndarray) -> Leaves:
     """The voxels of `leaves` whose keys lie in the box lo_key..hi_key (inclusive, per axis), as
     leaves: a leaf inside is kept whole, one outside dropped, one across the box's faces split
-    into its 8 children until each is inside or outside (OctoMap's edit_octree crop; the tree
-    stays canonical, since a split leaf never keeps all 8 children)."""
+    into its 8 children until each is inside or outside (the tree stays canonical, since a
+    split leaf never keeps all 8 children)."""
     from voxtool.keys import leaf_edge, morton_decode
 
     lo_key, hi_key = np.asarray(lo_key, np.int64), np.asarray(hi_key, np.int64)
