@@ -181,7 +181,7 @@ def main() -> None:
     result = {"bag": str(bag), "bag_mib": round(bag.stat().st_size / 2**20, 1), "scans": n,
               "points": built["points"], "resolution": args.resolution, "command_s": round(wall, 2),
               "scans_per_s": round(n / wall, 1), "peak_rss_mib": round(max(v for _, v in samples), 1),
-              "occupied_voxels": built["occupied_voxels"], "leaves": built["octree_leaf_nodes"],
+              "occupied_voxels": built["occupied_voxels"], "leaves": built["logodds_leaf_nodes"],
               "timings_s": built["timings_s"], "tenths": tenths}
     print(f"{result['scans']:,} scans, {result['points']:,} points, bag {result['bag_mib']:,.0f} MiB, "
           f"{args.resolution} m: {wall:.1f} s ({result['scans_per_s']} scans/s), peak RSS {result['peak_rss_mib']} MiB, "

@@ -199,10 +199,10 @@ def scale(args) -> None:
             t = built["timings_s"]
             steps = built["ray_steps"]
             row = {"dataset": name, "axis": axis, "resolution": res, "scans": built["scans"], "ray_steps": steps,
-                   "voxel_updates": built["voxel_updates"], "leaves": built["octree_leaf_nodes"],
+                   "voxel_updates": built["voxel_updates"], "leaves": built["logodds_leaf_nodes"],
                    "command_s": round(wall, 3), "ns_per_step": round(wall / steps * 1e9, 2),
                    "loop_ns_per_step": round(t["total"] / steps * 1e9, 2), "peak_rss_mib": round(rss / 2**20, 1),
-                   "bytes_per_leaf": round(rss / max(built["octree_leaf_nodes"], 1), 1),
+                   "bytes_per_leaf": round(rss / max(built["logodds_leaf_nodes"], 1), 1),
                    **{f"{k}_s": t[k] for k in ("startup", "open", "jit", "total", "stats", "write")},
                    # the loop's phases, each summed over the scans (they overlap: read and cast
                    # scan i+1 on a helper thread while scan i updates the map)

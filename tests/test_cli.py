@@ -45,7 +45,7 @@ def test_stats_json_matches_build_and_compare_detects_drift(sample_map, tmp_path
     code, text = run("stats", out, "--json")
     assert code == 0
     stats = json.loads(text)
-    for key in ("occupied_voxels", "free_voxels", "leaf_nodes", "inner_nodes", "occupied_bbox", "scans", "points"):
+    for key in ("occupied_voxels", "free_voxels", "bt_leaf_nodes", "bt_inner_nodes", "occupied_bbox", "scans", "points"):
         assert stats[key] == built[key]
     base = tmp_path / "base.json"
     base.write_text(json.dumps(stats))

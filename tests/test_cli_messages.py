@@ -96,11 +96,22 @@ def test_compare_knows_which_way_is_worse_and_prints_everything_in_json(logs, tm
 def test_a_map_that_lost_voxels_is_a_regression_too(tmp_path, sample_map):
     path, built = sample_map
     (tmp_path / "base.json").write_text(json.dumps(dict(built, occupied_voxels=built["occupied_voxels"] + 100,
-                                                        leaf_nodes=built["leaf_nodes"] + 100)))
+                                                        bt_leaf_nodes=built["bt_leaf_nodes"] + 100)))
     code, out, err = run("stats", path, "--compare", tmp_path / "base.json", "--json")
     report = json.loads(out)["comparison"]
     assert code == 6 and report["regressions"] == ["occupied_voxels"]  # fewer voxels: changed; fewer nodes: better
-    assert report["figures"]["leaf_nodes"]["verdict"] == "improvement"
+    assert report["figures"]["bt_leaf_nodes"]["verdict"] == "improvement"
+
+
+def test_a_baseline_with_the_old_figure_names_still_compares(tmp_path, sample_map):
+    path, built = sample_map
+    old = {"leaf_nodes": built["bt_leaf_nodes"] - 100, "octree_leaf_nodes": built["logodds_leaf_nodes"],
+           "occupied_voxels": built["occupied_voxels"]}
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    code, out, _ = run("stats", path, "--compare", tmp_path / "old.json", "--json")
+    report = json.loads(out)["comparison"]
+    assert code == 6 and report["regressions"] == ["bt_leaf_nodes"]
+    assert report["figures"]["logodds_leaf_nodes"]["verdict"] == "ok"
 
 
 def test_build_and_stats_report_the_same_figures_named_for_what_they_count(tmp_path, sample_map):
@@ -108,20 +119,20 @@ def test_build_and_stats_report_the_same_figures_named_for_what_they_count(tmp_p
     path, built = sample_map
     code, out, _ = run("stats", path, "--json")
     stats = json.loads(out)
-    for key in ("leaf_nodes", "inner_nodes", "octree_leaf_nodes", "octree_inner_nodes", "pool_bytes_used",
+    for key in ("bt_leaf_nodes", "bt_inner_nodes", "logodds_leaf_nodes", "logodds_inner_nodes", "pool_bytes_used",
                 "occupied_voxels", "free_voxels"):
         assert stats[key] == built[key], key
     # leaf_nodes / inner_nodes are the tree of the .bt that export writes, as OctoMap reads it
     code, out, _ = run("export", path, "-o", tmp_path / "m.bt", "--json")
-    assert code == 0 and json.loads(out)["leaf_nodes"] == stats["leaf_nodes"]
+    assert code == 0 and json.loads(out)["bt_leaf_nodes"] == stats["bt_leaf_nodes"]
     tree = pyoctomap.OcTree(0.1)
     assert tree.readBinary(str(tmp_path / "m.bt"))
-    assert (tree.getNumLeafNodes(), tree.size()) == (stats["leaf_nodes"], stats["leaf_nodes"] + stats["inner_nodes"])
-    assert stats["octree_leaf_nodes"] > stats["leaf_nodes"]  # the log-odds tree prunes less
+    assert (tree.getNumLeafNodes(), tree.size()) == (stats["bt_leaf_nodes"], stats["bt_leaf_nodes"] + stats["bt_inner_nodes"])
+    assert stats["logodds_leaf_nodes"] > stats["bt_leaf_nodes"]  # the log-odds tree prunes less
     code, out, _ = run("stats", tmp_path / "m.bt", "--json")
     from_bt = json.loads(out)
-    assert (from_bt["leaf_nodes"], from_bt["inner_nodes"]) == (stats["leaf_nodes"], stats["inner_nodes"])
-    assert from_bt["pool_bytes"] is None and from_bt["octree_leaf_nodes"] is None  # a file has no pool
+    assert (from_bt["bt_leaf_nodes"], from_bt["bt_inner_nodes"]) == (stats["bt_leaf_nodes"], stats["bt_inner_nodes"])
+    assert from_bt["pool_bytes"] is None and from_bt["logodds_leaf_nodes"] is None  # a file has no pool
     code, out, _ = run("stats", tmp_path / "m.bt")
     assert "0.0 MiB" not in out and "memory" not in out
 

@@ -139,7 +139,7 @@ def test_sharded_snapshot_round_trips_and_is_checked(client, tmp_path):
     for key in ("occupied_voxels", "free_voxels", "occupied_bbox", "scans", "points"):
         assert streamed[key] == whole[key] == (result[key] if key in result else whole[key])
     # node counts of the whole tree, joined from the parts
-    for key in ("leaf_nodes", "inner_nodes", "octree_leaf_nodes", "octree_inner_nodes"):
+    for key in ("bt_leaf_nodes", "bt_inner_nodes", "logodds_leaf_nodes", "logodds_inner_nodes"):
         assert streamed[key] == whole[key] > 0, key
     # exported part by part: the same .bt, byte for byte, and the same voxel centres
     assert cli("export", out, "-o", tmp_path / "a.bt")[0] == 0
@@ -192,7 +192,7 @@ def test_fleet_rows_equal_per_source_runs(client, tmp_path):
     for name, src in (("sample", SAMPLE), ("small", small)):
         alone = build_map(src, SourceOptions(), MapParams(0.2), SensorModel(), progress=False)
         got = rows[name]["result"]
-        for key in ("occupied_voxels", "free_voxels", "leaf_nodes", "inner_nodes", "scans", "points", "voxel_updates"):
+        for key in ("occupied_voxels", "free_voxels", "bt_leaf_nodes", "bt_inner_nodes", "scans", "points", "voxel_updates"):
             assert got[key] == alone[key], key
         assert (out / f"{name}.vxm").is_file()
     assert report["totals"]["ok"] == 2 and report["totals"]["failed"] == 1

@@ -314,7 +314,7 @@ def map_stats(path: str | os.PathLike, progress: bool | None = False) -> dict:
             out = {"backend": meta["backend"], "resolution": res}
             out.update(tree_stats(leaves, res, thr, False))
             # a .bt holds only the max-likelihood tree: no log-odds tree, no in-memory pool
-            out.update(octree_leaf_nodes=None, octree_inner_nodes=None, pool_bytes=None, pool_bytes_used=None,
+            out.update(logodds_leaf_nodes=None, logodds_inner_nodes=None, pool_bytes=None, pool_bytes_used=None,
                        file_nodes=meta["declared_nodes"])
             return out
         from voxtool.io.mapfile import load_map

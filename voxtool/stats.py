@@ -19,18 +19,21 @@ from voxtool.maps.base import Leaves
 # machine-dependent and never compared. docs/parameters.md lists the reason for each.
 COMPARED = {
     "occupied_voxels": "any", "free_voxels": "any",  # the map itself: fewer can be as wrong as more
-    "leaf_nodes": "up", "inner_nodes": "up",  # a bigger tree costs more memory, disk and bandwidth
-    "octree_leaf_nodes": "up", "octree_inner_nodes": "up",
+    "bt_leaf_nodes": "up", "bt_inner_nodes": "up",  # a bigger tree costs more memory, disk and bandwidth
+    "logodds_leaf_nodes": "up", "logodds_inner_nodes": "up",
     "scans": "any", "points": "any",  # a different input: the rest is no longer comparable
     "points_dropped": "up",
 }
+# the names these figures had before 0.2 (a baseline written then still compares)
+RENAMED = {"leaf_nodes": "bt_leaf_nodes", "inner_nodes": "bt_inner_nodes",
+           "octree_leaf_nodes": "logodds_leaf_nodes", "octree_inner_nodes": "logodds_inner_nodes"}
 LOG_COMPARED = {"packets": "up", "bytes": "up", "total.avg_Bps": "up", "total.max_Bps": "up"}  # packet logs
 
 
 def tree_stats(leaves: Leaves | Iterable[Leaves], resolution: float, threshold_log: float, canonical: bool) -> dict:
-    """leaf_stats, and the nodes of OctoMap's two trees of these leaves: `leaf_nodes` /
-    `inner_nodes` of the max-likelihood tree a .bt file holds, `octree_leaf_nodes` /
-    `octree_inner_nodes` of the log-odds tree OctoMap keeps in memory (`canonical`: the leaves are
+    """leaf_stats, and the nodes of OctoMap's two trees of these leaves: `bt_leaf_nodes` /
+    `bt_inner_nodes` of the max-likelihood tree a .bt file holds, `logodds_leaf_nodes` /
+    `logodds_inner_nodes` of the log-odds tree OctoMap keeps in memory (`canonical`: the leaves are
     that tree's already, else they are pruned first). `leaves` may come in consecutive chunks
     (ShardedOctree.leaf_chunks), each read once."""
     counter = TreeStats(threshold_log, canonical)
@@ -84,8 +87,8 @@ class TreeStats:
 
         out = self.summary.result(resolution)
         counts = (self.octree_leaves, self.octree_inner) if self.canonical else pruned_tree_close(*self.octree)
-        out["octree_leaf_nodes"], out["octree_inner_nodes"] = (int(n) for n in counts)
-        out["leaf_nodes"], out["inner_nodes"] = (int(n) for n in pruned_tree_close(*self.ml))
+        out["logodds_leaf_nodes"], out["logodds_inner_nodes"] = (int(n) for n in counts)
+        out["bt_leaf_nodes"], out["bt_inner_nodes"] = (int(n) for n in pruned_tree_close(*self.ml))
         return out
 
 
@@ -153,6 +156,9 @@ def compare(current: dict, baseline_path: str | Path, tolerance: float, figures:
         raise FormatError(f"{path}: cannot read baseline JSON ({err})") from err
     if not isinstance(baseline, dict):
         raise FormatError(f"{path}: baseline JSON is not an object")
+    for old, new in RENAMED.items():
+        if old in baseline and new not in baseline:
+            baseline[new] = baseline.pop(old)
     if not (0 <= tolerance < math.inf):  # NaN would pass every figure
         raise ParameterError(f"--tolerance {tolerance} must be a finite number >= 0")
     rows = {}

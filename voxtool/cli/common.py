@@ -160,11 +160,11 @@ def summary_rows(stats: dict) -> list[tuple[str, str]]:
         ("resolution", f"{stats.get('resolution')} m"),
         ("occupied voxels", f"{stats['occupied_voxels']:,}"),
         ("free voxels", f"{stats['free_voxels']:,}"),
-        ("nodes (leaf/inner)", f"{stats['leaf_nodes']:,} / {stats['inner_nodes']:,} in the .bt (max-likelihood) tree"
-         if stats.get("leaf_nodes") is not None else "not counted part by part (the tree spans the parts)"),
+        ("nodes (leaf/inner)", f"{stats['bt_leaf_nodes']:,} / {stats['bt_inner_nodes']:,} in the .bt (max-likelihood) tree"
+         if stats.get("bt_leaf_nodes") is not None else "not counted part by part (the tree spans the parts)"),
     ]
-    if stats.get("octree_leaf_nodes") is not None:
-        rows.append(("", f"{stats['octree_leaf_nodes']:,} / {stats['octree_inner_nodes']:,} in the log-odds octree"))
+    if stats.get("logodds_leaf_nodes") is not None:
+        rows.append(("", f"{stats['logodds_leaf_nodes']:,} / {stats['logodds_inner_nodes']:,} in the log-odds octree"))
     if stats.get("pool_bytes") is not None:
         rows.append(("memory", f"{stats['pool_bytes_used'] / 2**20:.1f} MiB in use, {stats['pool_bytes'] / 2**20:.1f} MiB "
                                f"allocated ({stats.get('backend')})"))

@@ -140,7 +140,7 @@ def write_bt_export(path: Path, leaves: Leaves, resolution: float, threshold_log
     if include_free:
         raise ParameterError(f"{path}: a .bt always holds free and occupied voxels; --free is for .ply/.pcd")
     leaf_nodes, inner_nodes = write_bt(path, leaves, resolution, threshold_log)
-    return {"format": "bt", "leaf_nodes": leaf_nodes, "inner_nodes": inner_nodes}
+    return {"format": "bt", "bt_leaf_nodes": leaf_nodes, "bt_inner_nodes": inner_nodes}
 
 
 def write_vxm(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool) -> dict:

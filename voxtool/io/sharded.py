@@ -177,8 +177,8 @@ def combined_stats(parts: list[dict], manifest: dict) -> dict:
     sharded_stats)."""
     out = {"backend": "octree", "sharded": True, "partitions": manifest["partitions"],
            "resolution": manifest["map_params"]["resolution"], "occupied_voxels": 0, "free_voxels": 0,
-           "occupied_bbox": None, "part_leaves_max": 0, "leaf_nodes": None, "inner_nodes": None,
-           "octree_leaf_nodes": None, "octree_inner_nodes": None}
+           "occupied_bbox": None, "part_leaves_max": 0, "bt_leaf_nodes": None, "bt_inner_nodes": None,
+           "logodds_leaf_nodes": None, "logodds_inner_nodes": None}
     lo = hi = None
     for part in parts:
         out["occupied_voxels"] += part["occupied_voxels"]

@@ -62,7 +62,7 @@ def _bt(path: Path, output: Path, include_free: bool, progress) -> dict:
         with atomic_writer(output) as handle:
             handle.write(header)
             write_pieces(handle, pieces, table, spool)
-    return {"format": "bt", "leaf_nodes": leaf_nodes, "inner_nodes": inner_nodes}
+    return {"format": "bt", "bt_leaf_nodes": leaf_nodes, "bt_inner_nodes": inner_nodes}
 
 
 def _cloud(path: Path, output: Path, fmt: str, include_free: bool, progress) -> dict:

@@ -142,8 +142,8 @@ def join_counts(ml: Units, lo: Units) -> dict:
     a snapshot: the max-likelihood (.bt) tree's and the log-odds octree's."""
     ml_leaves, ml_inner, _ = join(ml.arrays())
     lo_leaves, lo_inner, _ = join(lo.arrays())
-    return {"leaf_nodes": ml_leaves, "inner_nodes": ml_inner, "octree_leaf_nodes": lo_leaves,
-            "octree_inner_nodes": lo_inner}
+    return {"bt_leaf_nodes": ml_leaves, "bt_inner_nodes": ml_inner, "logodds_leaf_nodes": lo_leaves,
+            "logodds_inner_nodes": lo_inner}
 
 
 def write_pieces(handle, pieces: list, units: dict[str, np.ndarray], spool) -> None:
