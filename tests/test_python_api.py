@@ -58,15 +58,19 @@ def test_query_answers_occupied_free_unknown_on_the_sample(sample_map, tmp_path)
     m, centres = check_query(path, tmp_path / "occ.ply", tmp_path)
     # the command line agrees with the API, one point and a file of points
     x, y, z = centres[7]
-    code, text, _ = cli("query", path, "--json", "--", x, y, z)  # "--": coordinates may be negative
+    code, text, _ = cli("query", path, "--json", "--", x, y, z)  # "--" still works
     assert code == 0 and json.loads(text)["state"] == "occupied"
+    negative = next(c for c in centres if (c < 0).sum() >= 2)  # -20 is a coordinate, not an option '-2'
+    code, text, err = cli("query", path, "--json", *negative)
+    assert code == 0 and json.loads(text)["state"] == "occupied", err
     pts = tmp_path / "pts.csv"
     pts.write_text("x,y,z\n" + "\n".join(f"{a},{b},{c}" for a, b, c in centres[:50]) + "\n1e6,0,0\n")
     code, text, _ = cli("query", path, "--points", pts, "--json", "-o", tmp_path / "answers.csv")
     result = json.loads(text)
     assert code == 0 and result["occupied"] == 50 and result["unknown"] == 1 and result["points"] == 51
-    rows = np.loadtxt(tmp_path / "answers.csv", delimiter=",", skiprows=1)
-    assert rows.shape == (51, 6) and (rows[:50, 3] == 2).all() and rows[50, 5] == -1
+    rows = np.loadtxt(tmp_path / "answers.csv", delimiter=",", skiprows=1, dtype=str)
+    assert rows.shape == (51, 6) and (rows[:50, 3] == "occupied").all() and rows[50, 3] == "unknown"
+    assert rows[50, 5] == "-1" and np.allclose(rows[:50, :3].astype(float), centres[:50], atol=1e-6)
     # whitespace-separated, no header: the same answers; a short line is named by its line number
     spaced = tmp_path / "spaced.csv"
     spaced.write_text("\n".join(f"{a} {b} {c}" for a, b, c in centres[:50]) + "\n\n1e6 0 0\n")

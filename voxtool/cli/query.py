@@ -57,12 +57,13 @@ def _first_bad_line(path: Path, header: bool) -> str:
     return "not x, y, z numbers"
 
 
-@click.command()
+@click.command(context_settings={"ignore_unknown_options": True})  # so that -20 is a coordinate, not an option
 @click.argument("map_file", type=click.Path(path_type=Path))
 @click.argument("xyz", nargs=3, type=float, required=False)
 @click.option("--points", type=click.Path(path_type=Path), help="Query every point of a .csv (x,y,z) or .pcd file.")
 @click.option("-o", "--output", type=click.Path(path_type=Path),
-              help="--points: write the answers as CSV (x,y,z,state,probability,depth) instead of a summary.")
+              help="--points: write the answers as CSV (x,y,z,state,probability,depth; state as a word: occupied, "
+                   "free, unknown) instead of a summary.")
 @click.option("--json", "as_json", is_flag=True, help="Print as JSON (per point for X Y Z; counts for --points).")
 @handle_errors
 def query(map_file, xyz, points, output, as_json):
@@ -72,7 +73,7 @@ def query(map_file, xyz, points, output, as_json):
 
     \b
       voxtool query map.vxm 1.0 2.5 0.3
-      voxtool query map.vxm --json -- -4.2 1.0 0.3   (-- before negative coordinates)
+      voxtool query map.vxm --json -4.2 1.0 -0.3
       voxtool query map.vxm --points pts.csv -o answers.csv"""
     import numpy as np
 
@@ -97,12 +98,15 @@ def query(map_file, xyz, points, output, as_json):
     if output is not None:
         from voxtool.atomic import atomic_writer
 
-        table = np.column_stack([pts, answer["state"], answer["probability"], answer["depth"]])
+        from itertools import chain
+
+        names = np.array(STATE_NAMES, dtype=object)[answer["state"]]  # words, as the text and JSON say
+        columns = (pts[:, 0], pts[:, 1], pts[:, 2], names, answer["probability"], answer["depth"])
         with atomic_writer(output) as f:
             f.write(b"x,y,z,state,probability,depth\n")
             # one %-format per block of rows, not one per row (np.savetxt): 1M rows 2.7 s -> 1.2 s
-            row = "%.6f,%.6f,%.6f,%d,%.6f,%d\n"
-            for start in range(0, len(table), 65_536):
-                block = table[start:start + 65_536]
-                f.write(((row * len(block)) % tuple(block.ravel().tolist())).encode())
+            row = "%.6f,%.6f,%.6f,%s,%.6f,%d\n"
+            for start in range(0, len(pts), 65_536):
+                block = [c[start:start + 65_536].tolist() for c in columns]
+                f.write(((row * len(block[0])) % tuple(chain.from_iterable(zip(*block)))).encode())
     emit(result, as_json, [(k, f"{v:,}") for k, v in result.items()], written=output)
