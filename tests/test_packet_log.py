@@ -131,3 +131,24 @@ def test_logs_on_clocks_years_apart(sample_logs, tmp_path):
     assert got["max_Bps"] == 37.0  # the average over the 1 s span given; the busiest second holds 30
     got = _bandwidth(np.array([0, 10**8, years], np.int64), np.array([10, 20, 7], np.int64), years / 1e9)
     assert got["max_Bps"] == 30.0
+
+
+def test_logs_encoded_without_robot_are_named_after_their_files(tmp_path):
+    """Two logs encoded without --robot used to both be 'r1', and merge refused them as one
+    robot's log given twice; now each robot is named after its log's file."""
+    import json
+
+    for name, (start, stop) in (("north", (0, 2)), ("south-robot-with-a-long-name", (2, 4))):
+        code, text, err = cli("encode", "--sample", "-o", tmp_path / f"{name}.mcap", "--start", start, "--stop", stop,
+                              "--max-range", 20, "--json", "--no-progress")
+        assert code == 0, err
+    assert json.loads(text)["robot"] == "south-robot-with"  # cut to the format's 16 bytes
+    code, text, err = cli("merge", tmp_path / "north.mcap", tmp_path / "south-robot-with-a-long-name.mcap",
+                          "-o", tmp_path / "fused.vxm", "--json", "--no-progress")
+    assert code == 0, err
+    assert set(json.loads(text)["robots"]) == {"north", "south-robot-with"}
+    for name in ("a", "b"):
+        assert cli("encode", "--sample", "-o", tmp_path / f"{name}.mcap", "--robot", "same", "--stop", 2,
+                   "--max-range", 20, "--no-progress")[0] == 0
+    code, _, err = cli("merge", tmp_path / "a.mcap", tmp_path / "b.mcap", "-o", tmp_path / "f2.vxm", "--no-progress")
+    assert code == 2 and "encode each with its own --robot" in err, err

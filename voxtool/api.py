@@ -164,9 +164,11 @@ def encode_log(source, output, options: SourceOptions, params: MapParams, sensor
     """Map `source` and write its voxel changes as a packet log (`voxtool encode`); the report
     carries the map's dropped-update figures, if any (dropped_warnings)."""
     from voxtool.atomic import check_writable
-    from voxtool.codec.encode import encode_stream
+    from voxtool.codec.encode import encode_stream, robot_from_path
     from voxtool.maps import make_backend
 
+    if encode_options.robot is None:  # no --robot: the log's name, so that two robots' logs never share one
+        encode_options = replace(encode_options, robot=robot_from_path(output))
     if Path(output).suffix.lower() != ".mcap":
         raise ParameterError(f"{output}: packet logs are written as .mcap")
     check_writable(output)

@@ -26,7 +26,9 @@ from voxtool.cli.common import (
 @click.option("-o", "--output", required=True, type=click.Path(),
               help="Packet log to write (.mcap); a directory (several SOURCES, or a name ending in /): one log per "
                    "source, named after it.")
-@click.option("--robot", default="r1", show_default=True, help="Robot id (1..16 bytes) stamped on every packet.")
+@click.option("--robot", default=None,
+              help="Robot id (1..16 bytes) stamped on every packet. Default: the log's file name (r2.mcap: r2), so "
+                   "that the logs of two robots fuse as two robots.")
 @backend_options
 @scan_options
 @click.option("--scheme", type=click.Choice(["hilbert", "nested", "racer", "occupied"]), default=None,

@@ -19,9 +19,19 @@ from voxtool.parallel import one_blas_thread
 from voxtool.sources import ScanStream
 
 
+def robot_from_path(path) -> str:
+    """A robot id from a log's file name (its stem, cut to the format's 16 bytes at a character)."""
+    from pathlib import Path
+
+    name = Path(path).stem or "r1"
+    while len(name.encode()) > 16:
+        name = name[:-1]
+    return name
+
+
 @dataclass(frozen=True)
 class EncodeOptions:
-    robot: str = "r1"
+    robot: str | None = "r1"  # None: named after the log's file (robot_from_path)
     scheme: str = "hilbert"
     codec: str = "zstd"
     max_changes: int = 50_000  # d: emit when this many voxels changed state
@@ -38,7 +48,7 @@ class EncodeOptions:
             raise ParameterError(f"--keyframe-every {self.keyframe_every} must be >= 0 (0: no keyframes)")
         if self.codec in ("cm", "cm1") and self.scheme != "nested":
             raise ParameterError(f"--codec cm codes boxes in x-y-z order: use it with --scheme nested, not {self.scheme}")
-        if not self.robot or len(self.robot.encode()) > 16:
+        if self.robot is not None and (not self.robot or len(self.robot.encode()) > 16):
             raise ParameterError(f"robot id '{self.robot}' must be 1..16 bytes")
 
 

@@ -125,7 +125,8 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
             other = seen_ids[(p.seq, p.kind)]
             if other != path:
                 raise ParameterError(f"{path}: packet {p.seq} of robot '{p.robot}' is also in {other}: the same robot's "
-                                     "log given twice (a split log has no sequence numbers in common)")
+                                     "log given twice, or two robots' logs encoded under one name: encode each with "
+                                     "its own --robot (the default is the log's file name)")
             continue  # duplicate delivery within one log
         seen_ids[(p.seq, p.kind)] = path
         if p.kind == 0:
