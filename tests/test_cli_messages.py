@@ -202,3 +202,18 @@ def test_export_shows_progress_and_refuses_free_where_it_cannot_apply(tmp_path, 
         code, out, err = run("export", path, "-o", tmp_path / f"f{suffix}", "--free")
         assert code == 2 and "--free is for .ply/.pcd" in err and not (tmp_path / f"f{suffix}").exists()
     assert np.isfinite(json.loads(run("export", path, "-o", tmp_path / "f.ply", "--free", "--json")[1])["free_voxels"])
+
+
+def test_decay_with_another_backend_names_the_option(tmp_path):
+    code, _, err = run("build", "--sample", "-o", tmp_path / "m.vxm", "--decay", "5", "--backend", "hashmap")
+    assert code == 2 and "--decay" in err and "decay_half_life" not in err and err.count("\n") == 1, err
+
+
+def test_importing_a_bt_prints_its_statistics(sample_map, tmp_path):
+    path, built = sample_map
+    assert run("export", path, "-o", tmp_path / "m.bt")[0] == 0
+    code, out, err = run("build", tmp_path / "m.bt", "-o", tmp_path / "back.vxm", "--json")
+    got = json.loads(out)
+    assert code == 0 and got["occupied_voxels"] == built["occupied_voxels"] and got["imported"]["format"] == "vxm"
+    code, out, _ = run("build", tmp_path / "m.bt", "-o", tmp_path / "again.vxm")
+    assert f"{built['occupied_voxels']:,}" in out and "occupied voxels" in out

@@ -73,6 +73,9 @@ def build(sources, sample, output, origin, decay, share, ring, workers, schedule
     options = with_origin(options, origin)
     backend, extra = backend_setup(kw)
     if decay is not None:
+        if backend != "octree":
+            raise ParameterError(f"--decay makes the octree forget; backend '{backend}' has no decay (build with "
+                                 "--backend octree, the default)")
         extra["decay_half_life"] = decay
     # a trailing slash, an existing directory, or several sources without .vxm: one map per source
     to_dir = output is not None and not sharded and not one_map and (
@@ -115,7 +118,11 @@ def build(sources, sample, output, origin, decay, share, ring, workers, schedule
 
         if output is None:
             raise ParameterError(f"{sources[0]}: an OctoMap .bt is imported with -o MAP.vxm")
-        emit(export_map(sources[0], output, False, progress), as_json, [], written=output)
+        imported = export_map(sources[0], output, False, progress)
+        from voxtool.api import map_stats
+
+        result = {**map_stats(output, progress), "imported": imported}
+        emit(result, as_json, summary_rows(result), written=output)
         return
     result = build_map(sources[0], options, params, sensor, backend, output, progress, extra, share, ring,
                        per_scan=plot is not None)
