@@ -60,3 +60,17 @@ def test_an_interrupted_compile_exits_130(tmp_path):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert err.strip().splitlines() == ["voxtool: interrupted; no output written"]
+
+
+def test_compile_prints_its_phases_where_stderr_is_no_terminal():
+    """Piped stderr (an install log, CI) gets no bar: one line per command instead of a silent
+    half-minute on a fresh install."""
+    from voxtool.cli.compile import _steps
+
+    proc = subprocess.run([sys.executable, "-m", "voxtool.cli", "compile"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("voxtool compile: ")]
+    n = len(_steps(__import__("pathlib").Path(".")))
+    assert len(lines) == n and lines[0].startswith(f"voxtool compile: 1/{n} build: ")
+    quiet = subprocess.run([sys.executable, "-m", "voxtool.cli", "compile", "--no-progress"], capture_output=True, text=True)
+    assert quiet.returncode == 0 and "voxtool compile:" not in quiet.stderr

@@ -7,11 +7,12 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors, int_list, scan_options, scan_setup, threads_option
+from voxtool.cli.common import emit, handle_errors, int_list, resolve_source, scan_options, scan_setup, threads_option
 
 
 @click.command("eval")
-@click.argument("source", type=click.Path(path_type=Path))
+@click.argument("source", required=False, type=click.Path(path_type=Path))
+@click.option("--sample", is_flag=True, help="Use the small real sample shipped with voxtool as SOURCE.")
 @click.option("--holdout-every", type=int, default=None, metavar="N",
               help="Hold out every N-th scan counted from 1 (scans N, 2N, ...: indices N-1, 2N-1, ...), as "
                    "eval_octree_accuracy does with N = 5. Default: 5, unless --holdout is given.")
@@ -27,7 +28,7 @@ from voxtool.cli.common import emit, handle_errors, int_list, scan_options, scan
 @click.option("--json", "as_json", is_flag=True, help="Print the totals and every held-out scan's figures as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def eval_cmd(source, holdout_every, holdout, threads, min_correct, png, view, as_json, progress, **kw):
+def eval_cmd(source, sample, holdout_every, holdout, threads, min_correct, png, view, as_json, progress, **kw):
     """How well a map built from SOURCE predicts scans it was not built from (OctoMap's
     eval_octree_accuracy): the map is built from every scan but the held-out ones; each held-out
     scan's voxels (those its rays pass through: free; its end points: occupied) are looked up in
@@ -42,6 +43,7 @@ def eval_cmd(source, holdout_every, holdout, threads, min_correct, png, view, as
     from voxtool.errors import ParameterError
     from voxtool.evaluate import check_min_correct, evaluate
 
+    source = resolve_source(source, sample)
     if png is not None:
         if png.suffix.lower() != ".png":
             raise ParameterError(f"{png}: --png writes a .png picture")

@@ -96,9 +96,9 @@ def query(map_file, xyz, points, output, as_json):
     counts = np.bincount(answer["state"], minlength=3)
     result = {"points": int(pts.shape[0]), **{name: int(c) for name, c in zip(STATE_NAMES, counts)}}
     if output is not None:
-        from voxtool.atomic import atomic_writer
-
         from itertools import chain
+
+        from voxtool.atomic import atomic_writer
 
         names = np.array(STATE_NAMES, dtype=object)[answer["state"]]  # words, as the text and JSON say
         columns = (pts[:, 0], pts[:, 1], pts[:, 2], names, answer["probability"], answer["depth"])
