@@ -276,3 +276,27 @@ def test_pcd_directory_takes_its_scan_times_from_poses_txt_beside(tmp_path):
         assert [s.stamp_ns for s in open_source(d).scans] == [0, 0, 0]
     code, _, err = cli("build", d, "-o", tmp_path / "m.vxm", "--no-progress")
     assert code == 0 and err.count("voxtool: warning:") == 1 and "2 rows for 3 scans" in err, err
+
+
+def test_outputs_are_named_by_the_path_ends_that_tell_sources_apart(tmp_path, scans):
+    """`build data/*/pcd -o maps/` (the shared data's layout) once refused: every output would
+    be pcd.vxm. Now each is named by the shortest end of its path that differs."""
+    import json
+
+    from conftest import cli
+
+    from voxtool.sources import source_names
+
+    for name in ("alpha", "beta"):
+        d = tmp_path / "data" / name / "pcd"
+        d.mkdir(parents=True)
+        for i, (pts, o, q) in enumerate(scans):
+            write_pcd(d / f"{i}.pcd", pts, (*o, *q))
+    sources = [tmp_path / "data" / n / "pcd" for n in ("alpha", "beta")]
+    code, text, err = cli("build", *sources, "-o", tmp_path / "maps", "--json", "--no-progress")
+    assert code == 0, err
+    assert sorted(p.name for p in (tmp_path / "maps").iterdir()) == ["alpha-pcd.vxm", "beta-pcd.vxm"]
+    assert json.loads(text)["totals"]["ok"] == 2
+    assert source_names([sources[0]]) == ["alpha-pcd"]  # a lone pcd/ folder: its dataset's name too (plot titles)
+    assert source_names([tmp_path / "x" / "run.mcap", tmp_path / "y" / "run.mcap"]) == ["x-run", "y-run"]
+    assert source_names([tmp_path / "a.mcap", tmp_path / "b.mcap"]) == ["a", "b"]

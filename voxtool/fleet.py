@@ -15,9 +15,13 @@ SUFFIX = {"build": ".vxm", "encode": ".mcap"}
 
 
 def output_names(sources: list[Path], out_dir: Path, command: str) -> list[Path]:
-    """The output of each source in `out_dir`: named after the source (a directory's name, a
-    file's stem); two sources of one name, or an output that is a source, are refused."""
-    outs = [out_dir / f"{(s.name if s.is_dir() else s.stem) or 'source'}{SUFFIX[command]}" for s in sources]
+    """The output of each source in `out_dir`: named after the source by the shortest suffix of
+    its path that tells the sources apart (sources.source_names: data/kaist03/pcd and
+    data/norlab/pcd give kaist03-pcd and norlab-pcd); a source given twice, or an output that is
+    a source, is refused."""
+    from voxtool.sources import source_names
+
+    outs = [out_dir / f"{name}{SUFFIX[command]}" for name in source_names(sources)]
     seen: dict[Path, Path] = {}
     inputs = {s.resolve() for s in sources}
     for s, o in zip(sources, outs):

@@ -99,7 +99,9 @@ def cache_figure(result: dict):
     times.set_yticks(y, labels, fontsize=8)
     times.invert_yaxis()
     times.set_xlabel("time (s)")
-    times.set_title(f"{Path(result['source']).name} at {result['resolution']:g} m: where the time goes", loc="left",
+    from voxtool.sources import source_names
+
+    times.set_title(f"{source_names([result['source']])[0]} at {result['resolution']:g} m: where the time goes", loc="left",
                     fontsize=10)
     fig.legend(*times.get_legend_handles_labels(), loc="outside lower center", ncol=6, fontsize=8)
     ratio = np.array([r.get("hit_ratio", np.nan) for r in rows], float)

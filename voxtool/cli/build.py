@@ -30,7 +30,9 @@ from voxtool.cli.common import (
 @click.option("--sample", is_flag=True, help="Use the small real sample shipped with voxtool (norlab, BSD-3) as SOURCE.")
 @click.option("-o", "--output", type=click.Path(),
               help="Write the map snapshot (.vxm) here (atomically). A directory (several SOURCES, or a name ending "
-                   "in /): one map per source, named after it. With --sharded: the sharded map's directory.")
+                   "in /): one map per source, named by the shortest end of its path that tells the sources apart "
+                   "(data/kaist03/pcd and data/norlab/pcd: kaist03-pcd.vxm, norlab-pcd.vxm). With --sharded: the "
+                   "sharded map's directory.")
 @backend_options
 @scan_options
 @origin_option
@@ -131,7 +133,9 @@ def build(sources, sample, output, origin, decay, share, ring, workers, schedule
     if plot is not None:
         from voxtool.plots import build_figure, write_plot
 
-        result.update(write_plot(build_figure(result, sources[0].name), plot))
+        from voxtool.sources import source_names
+
+        result.update(write_plot(build_figure(result, source_names(sources)[0]), plot))
         del result["per_scan"]
         rows.append(("plot", str(plot)))
     emit(result, as_json, rows, written=output)

@@ -265,6 +265,28 @@ SOURCES: dict[str, Callable[[Path, SourceOptions], ScanStream]] = {
 BAG_DIRECTORY = "metadata.yaml"  # what makes a directory a ROS 2 bag
 
 
+GENERIC_FOLDERS = {"pcd", "ply", "scans", "scan", "points", "clouds", "lidar", "velodyne", "data", "bag", "bags"}
+
+
+def source_names(sources: list[str | Path]) -> list[str]:
+    """A name per source for outputs and titles: the shortest suffix of its path (parts joined by
+    '-', a file without its suffix) that tells the sources apart: data/kaist03/pcd and
+    data/norlab/pcd are kaist03-pcd and norlab-pcd. A lone source whose name only says what it
+    holds (pcd/, scans/) gets its parent's name too."""
+    parts = []
+    for s in sources:
+        p = Path(s).resolve()
+        names = [*p.parent.parts[1:], p.name if p.is_dir() or not p.suffix else p.stem]
+        parts.append([n for n in names if n] or ["source"])
+    longest = max(len(p) for p in parts)
+    for k in range(1, longest + 1):
+        names = ["-".join(p[-k:]) for p in parts]
+        generic = len(parts) == 1 and parts[0][-1].lower() in GENERIC_FOLDERS and k < min(2, len(parts[0]))
+        if len(set(names)) == len(names) and not generic:
+            return names
+    return ["-".join(p) for p in parts]
+
+
 def _scan_folders(path: Path, depth: int = 2) -> list[str]:
     """Sub-folders of `path` (down to `depth` levels) that hold scans or are ROS 2 bags."""
     found = []
