@@ -52,6 +52,7 @@ def _xvfb_view(*args):
     if "OpenGL context" in proc.stderr or "xvfb-run: error" in proc.stderr:
         pytest.skip(f"no OpenGL under Xvfb here: {proc.stderr.strip().splitlines()[-1]}")
     assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.strip() == "", proc.stderr  # no GLFW / Mesa / Open3D lines on success
     return json.loads(proc.stdout)
 
 
@@ -75,3 +76,51 @@ def test_screenshot_under_xvfb_draws_the_map_and_an_empty_slice_draws_nothing(sa
                         "--slice", fullest, "--free")
     assert sliced["occupied_voxels_shown"] == counts.max() < report["occupied_voxels_shown"]
     assert sliced["free_cells_shown"] > 0 and sliced["rendered_pixels"] > 0
+
+
+def test_view_without_a_display_is_one_line(sample_map):
+    """No display: an error at once (it ran forever on an invisible EGL window)."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    proc = subprocess.run([sys.executable, "-m", "voxtool.cli", "view", str(sample_map[0])], capture_output=True,
+                          text=True, timeout=60, env=env)
+    assert proc.returncode == 1 and proc.stderr.count("\n") == 1 and "--screenshot" in proc.stderr, proc.stderr
+
+
+def test_ctrl_c_ends_the_view_window(sample_map):
+    """A window under a real X server (Xvfb): Ctrl-C (SIGINT) ends `view` with exit 130 (Open3D's
+    run loop held the interpreter, and only SIGTERM ended it)."""
+    import os
+    import signal
+    import time
+
+    xvfb = shutil.which("Xvfb")
+    if xvfb is None:
+        pytest.skip("no Xvfb (Debian: xvfb) on this machine")
+    display = f":{200 + os.getpid() % 500}"
+    server = subprocess.Popen([xvfb, display, "-screen", "0", "1280x1024x24", "-nolisten", "tcp"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        time.sleep(1.0)
+        env = {**os.environ, "DISPLAY": display}
+        proc = subprocess.Popen([sys.executable, "-m", "voxtool.cli", "view", str(sample_map[0])], env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 60
+        err = ""
+        while "voxtool view: all heights" not in err and time.monotonic() < deadline and proc.poll() is None:
+            err += proc.stderr.readline()
+        if proc.poll() is not None:
+            rest = proc.stderr.read()
+            if "cannot open a window" in err + rest:
+                pytest.skip(f"no OpenGL window under Xvfb here: {(err + rest).strip().splitlines()[-1]}")
+            pytest.fail(f"view ended before its window showed: {err + rest}")
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        finally:
+            proc.kill()
+        assert proc.returncode == 130, proc.stderr.read()
+    finally:
+        server.terminate()
+        server.wait()

@@ -11,7 +11,11 @@ occupied voxels of one voxel layer. The legacy Open3D window has no text overlay
 
 from __future__ import annotations
 
+import os
 import sys
+import tempfile
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -170,24 +174,52 @@ def _camera(vis, scene: Scene) -> None:
     control.set_zoom(float(np.clip(0.8 * (core[1] - core[0]).max() / max(whole.max(), 1e-9), 0.02, 0.6)))
 
 
+@contextmanager
+def native_stderr_held():
+    """The C libraries' own lines on stderr (GLFW, Mesa's "XDG_RUNTIME_DIR is invalid", Open3D's
+    INFO) held back while OpenGL starts and renders: shown only when the rendering fails. They
+    write to file descriptor 2 directly, so sys.stderr cannot catch them."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield
+        except BaseException:
+            os.dup2(saved, 2)
+            held.seek(0)
+            sys.stderr.write(held.read().decode(errors="replace"))
+            raise
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
 def render(scene: Scene, show_free: bool, layer: int | None, width: int, height: int) -> np.ndarray:
     """The view rendered off-screen: (height, width, 3) floats in 0..1."""
     import open3d as o3d
 
-    vis = o3d.visualization.Visualizer()
-    if not vis.create_window(visible=False, width=width, height=height):
-        raise VoxtoolError("cannot create an off-screen OpenGL context (Open3D needs EGL or a display: "
-                           "try xvfb-run, and Debian's libgl1 libgl1-mesa-dri)")
-    try:
-        _style(vis)
-        for geometry in geometries(scene, show_free, layer):
-            vis.add_geometry(geometry)
-        _camera(vis, scene)
-        vis.poll_events()
-        vis.update_renderer()
-        return np.asarray(vis.capture_screen_float_buffer(do_render=True))
-    finally:
-        vis.destroy_window()
+    with native_stderr_held():
+        vis = o3d.visualization.Visualizer()
+        if not vis.create_window(visible=False, width=width, height=height):
+            raise VoxtoolError("cannot create an off-screen OpenGL context (Open3D needs EGL or a display: "
+                               "try xvfb-run, and Debian's libgl1 libgl1-mesa-dri)")
+        try:
+            _style(vis)
+            for geometry in geometries(scene, show_free, layer):
+                vis.add_geometry(geometry)
+            _camera(vis, scene)
+            vis.poll_events()
+            vis.update_renderer()
+            return np.asarray(vis.capture_screen_float_buffer(do_render=True))
+        finally:
+            vis.destroy_window()
+
+
+def has_display() -> bool:
+    """Whether a window can be shown: an X or Wayland display (elsewhere than Linux: assumed).
+    Without one Open3D falls back to an invisible EGL window that nobody can close."""
+    return not sys.platform.startswith("linux") or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
 def screenshot(scene: Scene, path: Path, name: str, show_free: bool = False, layer: int | None = None,
@@ -228,6 +260,9 @@ def show(scene: Scene, name: str, show_free: bool = False, layer: int | None = N
     """An interactive window; keys toggle free space and move a height slice."""
     import open3d as o3d
 
+    if not has_display():
+        raise VoxtoolError("no display to open a window on ($DISPLAY is not set): render a picture with "
+                           "--screenshot OUT.png, or run under xvfb-run")
     state = {"free": show_free, "layer": layer, "shown": []}
     z_keys = np.unique(scene.occupied[:, 2])
     vis = o3d.visualization.VisualizerWithKeyCallback()
@@ -271,8 +306,14 @@ def show(scene: Scene, name: str, show_free: bool = False, layer: int | None = N
     vis.register_key_callback(ord("]"), move(1))
     redraw(first=True)
     _camera(vis, scene)
-    vis.run()
-    vis.destroy_window()
+    try:
+        # Open3D's run() holds the interpreter until the window closes, so Ctrl-C did nothing;
+        # this loop returns to Python every frame, where KeyboardInterrupt ends it
+        while vis.poll_events():
+            vis.update_renderer()
+            time.sleep(1 / 60)
+    finally:
+        vis.destroy_window()
 
 
 def layer_of(scene: Scene, slice_z: float | None) -> int | None:

@@ -132,7 +132,6 @@ def build(sources, sample, output, origin, decay, share, ring, workers, schedule
     rows = summary_rows(result)
     if plot is not None:
         from voxtool.plots import build_figure, write_plot
-
         from voxtool.sources import source_names
 
         result.update(write_plot(build_figure(result, source_names(sources)[0]), plot))
