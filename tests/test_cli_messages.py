@@ -217,3 +217,13 @@ def test_importing_a_bt_prints_its_statistics(sample_map, tmp_path):
     assert code == 0 and got["occupied_voxels"] == built["occupied_voxels"] and got["imported"]["format"] == "vxm"
     code, out, _ = run("build", tmp_path / "m.bt", "-o", tmp_path / "again.vxm")
     assert f"{built['occupied_voxels']:,}" in out and "occupied voxels" in out
+
+
+def test_encode_prints_words_not_json_keys(tmp_path):
+    code, out, err = run("encode", "--sample", "-o", tmp_path / "r.mcap", "--stop", "2", "--max-range", "20")
+    assert code == 0, err
+    keys = [line.split()[0] for line in out.splitlines()]
+    assert not any("_" in k for k in keys), out
+    code, text, _ = run("encode", "--sample", "-o", tmp_path / "r2.mcap", "--stop", "2", "--max-range", "20", "--json")
+    report = json.loads(text)
+    assert f"{report['bytes']:,} bytes" in out and f"{report['packets']:,}" in out

@@ -73,4 +73,20 @@ def encode(sources, sample, output, robot, scheme, codec, max_changes, max_inter
     src = resolve_source(sources[0] if sources else None, sample)
     result = encode_log(src, output, options, params, sensor, backend, extra, opts, progress)
     warn_dropped(src, result)
-    emit(result, as_json, [(k, str(v)) for k, v in result.items()], written=output)
+    emit(result, as_json, encode_rows(result), written=output)
+
+
+def encode_rows(r: dict) -> list[tuple[str, str]]:
+    """An encoding report as people read it (--json keeps the raw figures)."""
+    rows = [
+        ("robot", f"{r['robot']} ({r['scheme']} order, {r['codec']} payloads)"),
+        ("scans", f"{r['scans']:,} over {r['duration_s']:.2f} s of scan time"),
+        ("packets", f"{r['packets']:,}" + (f" ({r['keyframes']:,} keyframes)" if r.get("keyframes") else "")),
+        ("log size", f"{r['bytes']:,} bytes for {r['changed_voxels']:,} voxel changes "
+                     f"({r['bytes_per_changed_voxel']:.3f} bytes a change)"),
+        ("bandwidth", f"{r['avg_bandwidth_Bps'] / 1e3:,.1f} kB/s on average, against {r['raw_sensor_Bps'] / 1e3:,.1f} kB/s "
+                      "of raw sensor data"),
+        ("time", f"mapping {r['time_map_s']:.3f} s, encoding {r['time_encode_s']:.3f} s "
+                 f"({r['encode_cells_per_s'] / 1e6:,.1f} M cells/s)"),
+    ]
+    return rows
