@@ -51,7 +51,30 @@ def test_stats_plot_is_refused_for_a_map_and_written_for_a_log(sample_logs, samp
     report = json.loads(text)
     assert imread(plot).shape[:2] == (report["height"], report["width"]) and report["plot"] == str(plot)
     code, _, err = cli("stats", sample_map[0], "--plot", tmp_path / "m.png")
-    assert code == 2 and "--plot draws the bandwidth of one packet log" in err and not (tmp_path / "m.png").exists()
+    assert code == 2 and "--plot draws the bandwidth of packet logs" in err and not (tmp_path / "m.png").exists()
+
+
+def test_stats_plot_draws_several_robots_logs_in_one_plot(sample_logs, tmp_path):
+    """Two robots' logs in one bandwidth plot (it was refused); a robot name both logs hold is
+    told apart by its file."""
+    from matplotlib.image import imread
+
+    from voxtool.codec.logstats import log_stats
+    from voxtool.plots import log_figure
+
+    plot = tmp_path / "both.png"
+    code, text, err = cli("stats", sample_logs["a"][0], sample_logs["b"][0], "--plot", plot, "--json")
+    assert code == 0, err
+    report = json.loads(text)
+    assert [set(r["robots"]) for r in report["logs"]] == [{"a"}, {"b"}] and imread(plot).shape[0] > 100
+    assert report["bytes"] == sum(r["bytes"] for r in report["logs"])
+    code, text, err = cli("stats", sample_logs["a"][0], sample_logs["a"][0], "--plot", tmp_path / "twice.png")
+    assert code == 0 and "2 robots" in text, err
+    series = {}
+    stats = log_stats(sample_logs["a"][0], False, series)
+    fig = log_figure({**stats, "robots": {"a": stats["robots"]["a"], "b": stats["robots"]["a"]}},
+                     {"a": series["a"], "b": series["a"]})
+    assert [t.get_text().split(":")[0] for t in fig.axes[0].get_legend().get_texts()] == ["a", "b"]
 
 
 def test_build_plot_draws_every_scans_latency_and_map_size(tmp_path):

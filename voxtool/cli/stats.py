@@ -31,11 +31,14 @@ def stats(map_files, as_json, baseline, tolerance, progress, plot, workers, sche
     from voxtool.stats import COMPARED, LOG_COMPARED, compare, comparison_rows, number, regression_error
 
     dask = wanted(workers, scheduler)
-    if plot is not None and (len(map_files) > 1 or dask or map_files[0].suffix.lower() != ".mcap"):
+    if plot is not None and (dask or any(f.suffix.lower() != ".mcap" for f in map_files)):
         from voxtool.errors import ParameterError
 
-        raise ParameterError("--plot draws the bandwidth of one packet log (.mcap), without --workers/--scheduler")
+        raise ParameterError("--plot draws the bandwidth of packet logs (.mcap), without --workers/--scheduler")
     check_plot(plot)
+    if plot is not None and len(map_files) > 1:
+        _plot_logs(map_files, plot, as_json, progress)
+        return
     if len(map_files) > 1 or dask:
         from voxtool.errors import ParameterError
         from voxtool.fleet import run_fleet_on
@@ -78,3 +81,28 @@ def stats(map_files, as_json, baseline, tolerance, progress, plot, workers, sche
     emit(result, as_json, rows)
     if report is not None and report["regressions"]:
         raise regression_error(report)
+
+
+def _plot_logs(logs: list[Path], plot: Path, as_json: bool, progress) -> None:
+    """Several robots' packet logs in one bandwidth plot (a robot name two logs share is told
+    apart by its file), and each log's figures."""
+    from voxtool.codec.logstats import log_stats
+    from voxtool.plots import log_figure, write_plot
+    from voxtool.stats import number
+
+    series, robots, results = {}, {}, []
+    for log in logs:
+        own: dict = {}
+        result = log_stats(log, progress, own)
+        results.append(result)
+        for robot, data in own.items():
+            name = robot if robot not in series else f"{robot} ({log.name})"
+            series[name], robots[name] = data, result["robots"][robot]
+    combined = {"log": " + ".join(log.name for log in logs), "packets": sum(r["packets"] for r in results),
+                "bytes": sum(r["bytes"] for r in results), "robots": robots}
+    out = {"logs": results, "packets": combined["packets"], "bytes": combined["bytes"],
+           **write_plot(log_figure(combined, series), plot)}
+    rows = [(str(log), f"{number(r['bytes'])} bytes in {number(r['packets'])} packets, robots "
+                       f"{', '.join(r['robots'])}") for log, r in zip(logs, results)]
+    rows.append(("plot", f"{plot}: {len(series)} robots"))
+    emit(out, as_json, rows, written=plot)
