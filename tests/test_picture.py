@@ -139,3 +139,35 @@ def test_the_caption_does_not_overlap_the_tick_labels(sample_map, view):
     for other in [*ax.get_xticklabels(), ax.xaxis.label]:
         if other.get_text():
             assert not box.overlaps(other.get_window_extent(renderer)), other.get_text()
+
+
+def test_a_top_view_of_a_room_shows_its_floor_plan_below_the_ceiling(tmp_path, sample_map):
+    """A closed room's top view showed only its ceiling; now it is drawn below the ceiling and the
+    caption says so. Outdoors (the sample) and with --crop the picture is unchanged."""
+    import json
+
+    from scenes import box_scene, write_pcd, yaw_quat
+
+    d = tmp_path / "room"
+    d.mkdir()
+    for i, (pts, o, yaw) in enumerate(box_scene(6, 4000, seed=5)):  # walls |x|, |y| <= 3 m, floor 0, ceiling 3 m
+        write_pcd(d / f"{i}.pcd", pts, (*o, *yaw_quat(yaw)))
+    m = tmp_path / "room.vxm"
+    assert cli("build", d, "-o", m, "--resolution", 0.1, "--no-progress")[0] == 0
+    code, text, err = cli("export", m, "-o", tmp_path / "top.png", "--json")
+    assert code == 0, err
+    roof = json.loads(text)["below_roof_m"]
+    assert 2.5 < roof <= 3.0
+    leaves, res, thr, _ = load_leaves(m)
+    raster = picture.picture(leaves, res, thr, "top")
+    assert picture.roof_height(raster, res) == pytest.approx(roof)
+    tops = raster.values_m(res)
+    assert np.nanmedian(tops) > 2.5  # the whole picture: the ceiling
+    # the same picture as a crop below the ceiling, given by hand (whose heights are kept)
+    auto = json.loads(text)
+    code, text, _ = cli("export", m, "-o", tmp_path / "crop.png", "--crop", f"-9,-9,-1,9,9,{roof}", "--json")
+    by_hand = json.loads(text)
+    assert code == 0 and "below_roof_m" not in by_hand
+    assert (by_hand["occupied_pixels"], by_hand["free_pixels"]) == (auto["occupied_pixels"], auto["free_pixels"])
+    code, text, _ = cli("export", sample_map[0], "-o", tmp_path / "out.png", "--json")
+    assert code == 0 and "below_roof_m" not in json.loads(text)

@@ -418,6 +418,8 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
             from voxtool.maps.tree import crop as crop_leaves
 
             leaves = crop_leaves(leaves, *crop_keys(crop, res))
+            if kind == ".png":
+                extra["below_roof"] = False  # the box chose the heights
             if kind == ".png" and len(leaves) == 0:
                 raise ParameterError(f"{path}: no voxel of the map lies in --crop {','.join(f'{v:g}' for v in crop)}")
         steps.update(1)

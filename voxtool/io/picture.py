@@ -216,13 +216,52 @@ def picture(leaves: Leaves, resolution: float, threshold_log: float, view: str =
     return raster
 
 
+ROOF_SHARE = 0.5  # a top view whose occupied pixels show a roof this often is drawn below it
+ROOF_BAND = 0.2  # of the map's occupied height range: the top band a roof lies in
+
+
+def roof_height(raster: Raster, resolution: float) -> float | None:
+    """The lowest height of a roof or ceiling that hides a top view's floor plan (metres), or
+    None: more than ROOF_SHARE of the occupied pixels show their top within the highest
+    ROOF_BAND of the occupied heights, over a range of at least 2 m (a room, a shack, a hall;
+    outdoors, trees and buildings cover too little for it)."""
+    tops = raster.values_m(resolution)
+    tops = tops[~np.isnan(tops)]
+    if tops.size < 100:
+        return None
+    lo, hi = float(tops.min()), float(tops.max())
+    if hi - lo < 2.0:
+        return None
+    band = tops[tops >= hi - ROOF_BAND * (hi - lo)]
+    if band.size < ROOF_SHARE * tops.size:
+        return None
+    return float(np.percentile(band, 2)) - resolution / 2  # the roof's lower edge
+
+
 def write_png(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-              view: str = "top", slice_z: float | None = None, label: str = "") -> dict:
+              view: str = "top", slice_z: float | None = None, label: str = "", below_roof: bool = True) -> dict:
+    """A picture of the map; a top view of a map with a roof (`below_roof`, unless --slice) is
+    drawn below it, so that it shows the floor plan, and its caption says so."""
     if include_free:
         raise ParameterError(f"{path}: a picture always shows free space (legend: free); --free is for .ply/.pcd")
     raster = picture(leaves, resolution, threshold_log, view, slice_z)
-    width, height = save(figure(raster, resolution, label or path.stem), path)
-    return {**figures(raster), "width": width, "height": height}
+    roof = roof_height(raster, resolution) if below_roof and view == "top" and slice_z is None else None
+    note = ""
+    if roof is not None:
+        from voxtool.keys import centre_key_range
+        from voxtool.maps.tree import crop
+
+        _, top_key = centre_key_range(0.0, roof, resolution)
+        below = crop(leaves, np.zeros(3, np.int64), np.array([65535, 65535, int(top_key)]))
+        if len(below):
+            raster = picture(below, resolution, threshold_log, view, None)
+            note = (f" · below the roof at {roof:.2f} m (the floor plan; --crop with another zmax to choose the "
+                    "heights, --view side for the walls)")
+    width, height = save(figure(raster, resolution, (label or path.stem) + note), path)
+    out = {**figures(raster), "width": width, "height": height}
+    if note:
+        out["below_roof_m"] = round(roof, 6)
+    return out
 
 
 def picture_of_parts(path: Path, output: Path, include_free: bool, progress=False, view: str = "top",
