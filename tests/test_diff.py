@@ -175,3 +175,23 @@ def test_bad_input(street_maps, tmp_path):
     assert code == 5 and str(bad) in err and len(err.strip().splitlines()) == 1
     code, _, err = cli("diff", a, a, "--ply", tmp_path / "x.txt")
     assert code == 2
+
+
+def test_diff_png_crop_draws_the_changes_in_the_box(sample_map, tmp_path):
+    """diff --png --crop frames the picture on a box and counts the changed voxels in it: the
+    --ply of every changed voxel, filtered to the box, holds as many."""
+    import open3d as o3d
+
+    full, _ = sample_map
+    less = tmp_path / "less.vxm"
+    assert cli("build", "--sample", "--stop", 3, "-o", less, "--no-progress")[0] == 0
+    box = (-20.0, -20.0, -3.0, 20.0, 20.0, 5.0)
+    code, text, err = cli("diff", less, full, "--png", tmp_path / "d.png", "--ply", tmp_path / "d.ply",
+                          "--crop", ",".join(map(str, box)), "--json")
+    assert code == 0, err
+    report = json.loads(text)
+    pts = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "d.ply")).points)
+    inside = np.all((pts >= np.array(box[:3]) - 1e-4) & (pts <= np.array(box[3:]) + 1e-4), axis=1)
+    assert sum(report["png"]["voxels"].values()) == int(inside.sum()) < len(pts)
+    code, _, err = cli("diff", less, full, "--crop", ",".join(map(str, box)))
+    assert code == 2 and "--crop frames the --png picture" in err

@@ -225,20 +225,32 @@ def write_changed_cloud(path: Path, result: MapDiff) -> dict:
     return {"format": fmt, "points": int(pts.shape[0])}
 
 
-def write_diff_png(path: Path, result: MapDiff, view: str = "top", label: str = "") -> dict:
+def write_diff_png(path: Path, result: MapDiff, view: str = "top", label: str = "", crop: tuple | None = None) -> dict:
     """A picture of where the maps differ, over map B drawn in grey (export .png's conventions:
-    view, axes in metres, scale bar, caption), with a legend of the change kinds."""
+    view, axes in metres, scale bar, caption), with a legend of the change kinds; `crop` (xmin,
+    ymin, zmin, xmax, ymax, zmax, metres): only the voxels whose centres lie in that box, as
+    `export --crop` (the counts in the legend too)."""
     from voxtool.io.picture import write_overlay_png
 
     changed = result.changed()
+    background = _background(result.b_map)
+    if crop is not None:
+        from voxtool.api import crop_keys
+        from voxtool.maps.tree import crop as crop_leaves
+
+        box = crop_keys(crop, result.resolution)
+        changed = crop_leaves(changed, *box)
+        background = ((crop_leaves(leaves, *box), threshold) for leaves, threshold in background)
     if len(changed) == 0:
-        raise ParameterError(f"{path}: the maps do not differ: there is nothing to draw")
+        where = "" if crop is None else f" in --crop {','.join(f'{v:g}' for v in crop)}"
+        raise ParameterError(f"{path}: the maps do not differ{where}: there is nothing to draw")
     layers = []
     for name, members, rgb in PICTURE_KINDS:
         pick = np.isin(changed.values.astype(np.int64), members)
-        layers.append((name, Leaves(changed.codes[pick], changed.depths[pick], np.ones(int(pick.sum()), np.float32)),
-                       rgb, int(result.counts[list(members)].sum())))
-    return write_overlay_png(path, _background(result.b_map), layers, result.resolution, view,
+        picked = Leaves(changed.codes[pick], changed.depths[pick], np.ones(int(pick.sum()), np.float32))
+        count = int(result.counts[list(members)].sum()) if crop is None else int(leaf_span(picked.depths).sum())
+        layers.append((name, picked, rgb, count))
+    return write_overlay_png(path, background, layers, result.resolution, view,
                              label or f"changes from A to B, over B ({result.b_map.path.name})", "B")
 
 

@@ -18,13 +18,16 @@ from voxtool.cli.common import emit, handle_errors
                    "legend.")
 @click.option("--view", type=click.Choice(["top", "front", "side"]), default="top", show_default=True,
               help="--png: the direction of the picture.")
+@click.option("--crop", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
+              help="--png: only the voxels whose centres lie in this box (metres, as export --crop); the counts "
+                   "above are of the whole maps.")
 @click.option("--ply", type=click.Path(path_type=Path), metavar="OUT.ply|OUT.pcd",
               help="Write the changed voxels' centres as a point cloud coloured as the picture's legend.")
 @click.option("--max-changed", type=click.IntRange(min=0), metavar="N",
               help="For CI: exit 7 when more than N voxels changed state (the outputs are still written).")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def diff(map_a, map_b, as_json, png, view, ply, max_changed, progress):
+def diff(map_a, map_b, as_json, png, view, crop, ply, max_changed, progress):
     """Compare MAP_A with MAP_B (.vxm, OctoMap .bt or sharded map directories, one resolution):
     voxels that changed state (occupied, free, unknown; each map by its own threshold), OctoMap
     compare_octrees' KL divergence over the voxels known in both, and the changes' bounding box.
@@ -44,6 +47,17 @@ def diff(map_a, map_b, as_json, png, view, ply, max_changed, progress):
             check_writable(out)
     if png is not None and png.suffix.lower() != ".png":
         raise ParameterError(f"{png}: --png writes a .png picture")
+    box = None
+    if crop is not None:
+        from voxtool.api import crop_keys
+
+        if png is None:
+            raise ParameterError("--crop frames the --png picture: give --png OUT.png")
+        try:
+            box = tuple(float(v) for v in crop.split(","))
+        except ValueError:
+            box = ()
+        crop_keys(box, 1.0)  # six numbers, each min at most its max: refused before the maps are read
     if ply is not None and ply.suffix.lower() not in (".ply", ".pcd"):
         raise ParameterError(f"{ply}: --ply writes the changed voxels as .ply or .pcd")
     result = diff_maps(map_a, map_b, progress)
@@ -53,7 +67,7 @@ def diff(map_a, map_b, as_json, png, view, ply, max_changed, progress):
         report["ply"] = write_changed_cloud(ply, result)
         written.append(ply)
     if png is not None and result.changed_voxels:
-        report["png"] = write_diff_png(png, result, view, f"{map_a.name} -> {map_b.name}")
+        report["png"] = write_diff_png(png, result, view, f"{map_a.name} -> {map_b.name}", box)
         written.append(png)
     elif png is not None:
         click.echo(f"voxtool: warning: {png}: the maps do not differ; no picture written", err=True)

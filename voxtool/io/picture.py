@@ -337,4 +337,5 @@ def write_overlay_png(path: Path, background, layers: list, resolution: float, v
     width, height = save(fig, path)
     return {"format": "png", "view": view, "width": width, "height": height,
             "changed_pixels": int(sum(m.sum() for _, m, _, _ in masks)),
+            "voxels": {name: count for name, _, _, count in masks},
             "background_known_pixels": int(((base.state == FREE) | (base.state == OCCUPIED)).sum())}
