@@ -121,6 +121,8 @@ def read_log(path: str | Path, handle=None) -> tuple[dict[str, dict], Messages]:
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
+    from voxtool.compression import check_mcap_chunks
+
     path = Path(path)
     if handle is None:
         try:
@@ -134,6 +136,10 @@ def read_log(path: str | Path, handle=None) -> tuple[dict[str, dict], Messages]:
             if record.name == "voxtool":
                 meta[record.metadata.get("robot", "")] = json.loads(record.metadata.get("info", "{}"))
         summary = reader.get_summary()
+        check_mcap_chunks(handle, summary, str(path))
+    except FormatError:
+        handle.close()
+        raise
     except (McapError, ValueError, EOFError, AssertionError, json.JSONDecodeError, KeyError, struct.error,
             UnicodeDecodeError, OverflowError, MemoryError) as err:
         handle.close()

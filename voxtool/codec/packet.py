@@ -21,7 +21,7 @@ import numpy as np
 import zstandard
 
 from voxtool.codec.varint import decode_deltas, encode_deltas
-from voxtool.compression import zstd_exact
+from voxtool.compression import check_expansion, zstd_exact
 from voxtool.errors import FormatError
 from voxtool.keys import key_bounds, morton_decode
 
@@ -97,6 +97,9 @@ def _compress(raw: bytes, codec: str) -> bytes:
 
 
 def _decompress(stored: bytes, codec: str, raw_size: int, where: str) -> bytes:
+    if codec != "raw":
+        # a box of mostly unchanged cells compresses far: 64 MiB of slack, then 1024x
+        check_expansion(raw_size, len(stored), f"{where}: payload", small=64 << 20, ratio=1024)
     try:
         if codec == "zstd":
             data = zstd_exact(stored, raw_size, f"{where}: payload")

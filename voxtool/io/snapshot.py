@@ -162,32 +162,107 @@ def parse_snapshot(blob: bytes, where: str = "snapshot") -> Snapshot:
         raise FormatError(f"{where}: header lacks the 'arrays' table")
     payload_start = _FIXED.size + head_len
     payload_end = len(blob) - 4
-    arrays: dict[str, np.ndarray] = {}
+    entries = {}
     for entry in header["arrays"]:
-        try:
-            name, dtype_name, shape = str(entry["name"]), str(entry["dtype"]), [int(s) for s in entry["shape"]]
-            offset, stored, raw = int(entry["offset"]), int(entry["stored_bytes"]), int(entry["raw_bytes"])
-            want_crc = int(entry["crc32"])
-        except (KeyError, TypeError, ValueError) as err:
-            raise FormatError(f"{where}: array table entry is malformed ({err})") from err
-        codec = entry.get("codec")
-        if dtype_name not in DTYPES or codec not in CODECS:
-            raise FormatError(f"{where}: array '{name}' has unknown dtype/codec {dtype_name}/{entry.get('codec')}")
-        itemsize = np.dtype(DTYPES[dtype_name]).itemsize
-        count = int(np.prod(shape, dtype=np.int64)) if shape else 1
-        if min(shape + [0]) < 0 or raw != count * itemsize or raw > MAX_ARRAY_BYTES:
-            raise FormatError(f"{where}: array '{name}' declares {raw} bytes for shape {shape} ({dtype_name})")
-        lo = payload_start + offset
-        if offset < 0 or stored < 0 or lo + stored > payload_end:
-            raise FormatError(f"{where}: array '{name}' lies beyond the end of the file")
-        chunk = blob[lo : lo + stored]
-        if zlib.crc32(chunk) != want_crc:
-            raise FormatError(f"{where}: array '{name}' CRC mismatch")
-        data = bytes(chunk) if codec == "raw" else zstd_exact(chunk, raw, f"{where}: array '{name}'")
-        if len(data) != raw:
-            raise FormatError(f"{where}: array '{name}' decompressed to {len(data)} bytes, declared {raw}")
-        arrays[name] = np.frombuffer(data, dtype=DTYPES[dtype_name]).reshape(shape).copy()
+        e = _entry(entry, where, payload_start, payload_end)
+        chunk = blob[e["lo"] : e["lo"] + e["stored"]]
+        if zlib.crc32(chunk) != e["crc"]:
+            raise FormatError(f"{where}: array '{e['name']}' CRC mismatch")
+        entries[e["name"]] = (e, chunk)
+    arrays: dict[str, np.ndarray] = {}
+    leaves = None
+    if "leaf_codes" in entries:  # first, in bounded pieces: it says how large the rest may be
+        e, chunk = entries.pop("leaf_codes")
+        arrays["leaf_codes"] = _leaf_codes(chunk, e, where)
+        leaves = arrays["leaf_codes"].shape[0]
+    for name, (e, chunk) in entries.items():
+        _check_expansion(e, leaves, where)
+        data = bytes(chunk) if e["codec"] == "raw" else zstd_exact(chunk, e["raw"], f"{where}: array '{name}'")
+        if len(data) != e["raw"]:
+            raise FormatError(f"{where}: array '{name}' decompressed to {len(data)} bytes, declared {e['raw']}")
+        arrays[name] = np.frombuffer(data, dtype=DTYPES[e["dtype"]]).reshape(e["shape"]).copy()
     return Snapshot(header, arrays)
+
+
+def _entry(entry, where: str, payload_start: int, payload_end: int) -> dict:
+    """One array table entry, every field and declared size checked (nothing allocated yet)."""
+    try:
+        e = {"name": str(entry["name"]), "dtype": str(entry["dtype"]), "shape": [int(s) for s in entry["shape"]],
+             "offset": int(entry["offset"]), "stored": int(entry["stored_bytes"]), "raw": int(entry["raw_bytes"]),
+             "crc": int(entry["crc32"]), "codec": entry.get("codec")}
+    except (KeyError, TypeError, ValueError) as err:
+        raise FormatError(f"{where}: array table entry is malformed ({err})") from err
+    name, shape, raw = e["name"], e["shape"], e["raw"]
+    if e["dtype"] not in DTYPES or e["codec"] not in CODECS:
+        raise FormatError(f"{where}: array '{name}' has unknown dtype/codec {e['dtype']}/{e['codec']}")
+    itemsize = np.dtype(DTYPES[e["dtype"]]).itemsize
+    count = int(np.prod(shape, dtype=np.int64)) if shape else 1
+    if min(shape + [0]) < 0 or raw != count * itemsize or raw > MAX_ARRAY_BYTES:
+        raise FormatError(f"{where}: array '{name}' declares {raw} bytes for shape {shape} ({e['dtype']})")
+    e["lo"] = payload_start + e["offset"]
+    if e["offset"] < 0 or e["stored"] < 0 or e["lo"] + e["stored"] > payload_end:
+        raise FormatError(f"{where}: array '{name}' lies beyond the end of the file")
+    if e["codec"] == "raw" and e["stored"] != raw:
+        raise FormatError(f"{where}: array '{name}' is stored raw in {e['stored']} bytes, declared {raw}")
+    return e
+
+
+# A decompression bomb (a small file whose arrays declare and expand to gigabytes of zeros) is
+# refused before what it declares is allocated. The leaf codes are read first, in pieces, and must
+# rise strictly: a valid table of N leaves compresses ~8x (zstd on consecutive int64: 7.6-10.8x),
+# so a file cannot declare more leaves than it holds. Every other array is either one entry per
+# leaf, or small (a pool, a few counters), or it compresses as real data does.
+LEAF_PIECE = 1 << 20  # leaf codes decompressed and checked this many at a time (8 MiB)
+PER_LEAF_BYTES = 64  # what the other arrays of a snapshot may hold per leaf (the hash map's: 33)
+SMALL_ARRAY = 64 << 20  # an array this small is never an expansion worth refusing
+MAX_RATIO = 64  # beyond these: more than a real map's arrays expand (measured at most 11x, but uniform ones)
+
+
+def _check_expansion(e: dict, leaves: int | None, where: str) -> None:
+    if e["codec"] == "raw" or e["raw"] <= SMALL_ARRAY or e["raw"] <= MAX_RATIO * e["stored"]:
+        return
+    if leaves is not None and e["raw"] <= PER_LEAF_BYTES * max(leaves, 1):
+        return
+    raise FormatError(f"{where}: array '{e['name']}' declares {e['raw']:,} bytes from {e['stored']:,} stored, more "
+                      f"than a map of {leaves or 0:,} leaves expands to: the file is corrupt (or a decompression bomb)")
+
+
+def _leaf_codes(chunk, e: dict, where: str) -> np.ndarray:
+    """The leaf codes, decompressed LEAF_PIECE at a time and refused at the first piece that does
+    not rise strictly inside the 48-bit key space (the tree's order), before the rest is read."""
+    import io
+
+    if e["dtype"] != "int64" or len(e["shape"]) != 1:
+        raise FormatError(f"{where}: array 'leaf_codes' must be one-dimensional int64")
+    pieces, total, last = [], 0, -1
+    reader = io.BytesIO(chunk) if e["codec"] == "raw" else zstandard.ZstdDecompressor().stream_reader(chunk)
+    try:
+        with reader:
+            while total < e["raw"]:
+                data = reader.read(min(8 * LEAF_PIECE, e["raw"] - total))
+                if not data or len(data) % 8:
+                    break
+                piece = np.frombuffer(data, dtype="<i8")
+                if piece[0] <= last or np.any(piece[1:] <= piece[:-1]) or piece[-1] >= 1 << 48:
+                    raise FormatError(f"{where}: leaves are not sorted or overlap (leaf codes must rise strictly "
+                                      f"below 2^48; found at leaf {total // 8 + _first_fall(piece, last):,})")
+                last = int(piece[-1])
+                pieces.append(piece)
+                total += len(data)
+            if reader.read(1):
+                raise FormatError(f"{where}: array 'leaf_codes' decompresses to more than its declared {e['raw']} bytes")
+    except zstandard.ZstdError as err:
+        raise FormatError(f"{where}: array 'leaf_codes' does not decompress ({err})") from err
+    if total != e["raw"]:
+        raise FormatError(f"{where}: array 'leaf_codes' decompressed to {total} bytes, declared {e['raw']}")
+    return np.concatenate(pieces) if pieces else np.empty(0, dtype=np.int64)
+
+
+def _first_fall(piece: np.ndarray, last: int) -> int:
+    """Index in `piece` of the first code that does not rise (or leaves the key space)."""
+    bad = np.flatnonzero(np.diff(np.concatenate(([last], piece))) <= 0)
+    out = np.flatnonzero(piece >= 1 << 48)
+    return int(min(bad[0] if bad.size else piece.size, out[0] if out.size else piece.size))
 
 
 def read_snapshot(path: str | Path) -> Snapshot:

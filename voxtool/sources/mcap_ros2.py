@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from voxtool.errors import SourceError, mcap_problem
+from voxtool.errors import FormatError, SourceError, mcap_problem
 from voxtool.geometry import Pose
 from voxtool.sources.ros_msgs import SCAN_TYPES, decode_scan
 from voxtool.sources.tf import POSE_TYPES, TF, SensorPoses, header_stamp
@@ -49,6 +49,12 @@ class McapCloudSource:
             raise SourceError(f"{self.path}: cannot be read as MCAP: {mcap_problem(err)}") from err
         if summary is None:
             raise SourceError(f"{self.path}: MCAP has no summary section (truncated or not finished)")
+        from voxtool.compression import check_mcap_chunks
+
+        try:
+            check_mcap_chunks(self._handle, summary, str(self.path))
+        except FormatError as err:
+            raise SourceError(str(err)) from err
         topics = {c.topic: summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "" for c in summary.channels.values()}
         counts = {summary.channels[cid].topic: n for cid, n in (summary.statistics.channel_message_counts.items() if summary.statistics else [])}
         topic = scan_topic(str(self.path), topics, topic)
