@@ -407,6 +407,16 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
         crop_keys(crop, 1.0)  # a bad box is refused before the map is read
     if Path(path).is_dir() and kind in STREAMED and crop is None and not map_origin(path):
         return export_sharded(path, output, include_free, progress, **extra)  # part by part
+    if kind == ".png" and crop is None and Path(path).suffix.lower() == ".vxm":
+        from voxtool.io.mapfile import stream_leaves
+
+        streamed = stream_leaves(path)
+        if streamed is not None:  # an octree snapshot, drawn a chunk of leaves at a time
+            from voxtool.io.picture import write_leaf_sets
+
+            res, thr, _, chunks = streamed
+            return write_leaf_sets(output, lambda: ((leaves, thr) for leaves in chunks()), res, include_free,
+                                   progress=progress, **extra)
     with bar(2, f"export {output.suffix}", progress, "step") as steps:
         leaves, res, thr, meta = load_leaves(path)
         origin = meta.get("info", {}).get("origin")

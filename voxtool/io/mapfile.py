@@ -53,6 +53,40 @@ def read_leaves(path: str | Path) -> tuple[Leaves, float, float, dict]:
     return leaves, backend.params.resolution, backend.sensor.threshold_log, snap.header
 
 
+LEAF_NAMES = ("leaf_codes", "leaf_depths", "leaf_values")
+
+
+def stream_leaves(path: str | Path, piece: int = 1 << 22):
+    """(resolution, threshold log-odds, header, chunks) of an octree snapshot: `chunks()` is a
+    fresh iterator of its stored leaves, `piece` at a time, each checked as load_map checks the
+    whole table (and where one chunk meets the next), so that a large map is read in the memory
+    of a chunk. None for another backend's snapshot (its leaves are derived from its state)."""
+    from voxtool.io.snapshot import stream_arrays
+
+    header, _ = stream_arrays(path, LEAF_NAMES, piece)  # checks the file (CRCs, sizes) once, here
+    if header.get("backend") != "octree":
+        return None
+    try:
+        params, sensor = MapParams(**header["map_params"]), SensorModel(**header["sensor_model"])
+    except (KeyError, TypeError, VoxtoolError) as err:
+        raise FormatError(f"{path}: snapshot header lacks or mangles map parameters ({err})") from err
+
+    def chunks():
+        from voxtool.keys import leaf_span
+
+        end = 0
+        for k, (codes, depths, values) in enumerate(stream_arrays(path, LEAF_NAMES, piece)[1]):
+            chunk = Leaves(codes, depths, values)
+            validate_leaves(chunk, f"{path} (leaves {k * piece:,} on)")
+            if codes.shape[0] and int(codes[0]) < end:
+                raise FormatError(f"{path}: leaves are not sorted or overlap")
+            if codes.shape[0]:
+                end = int(codes[-1]) + int(leaf_span(depths[-1:])[0])
+            yield chunk
+
+    return params.resolution, sensor.threshold_log, header, chunks
+
+
 def load_map(path: str | Path) -> tuple[MapBackend, Snapshot]:
     """Rebuild the backend stored in a snapshot file."""
     snap = read_snapshot(path)

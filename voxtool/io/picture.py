@@ -240,23 +240,56 @@ def roof_height(raster: Raster, resolution: float) -> float | None:
 
 def write_png(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
               view: str = "top", slice_z: float | None = None, label: str = "", below_roof: bool = True) -> dict:
-    """A picture of the map; a top view of a map with a roof (`below_roof`, unless --slice) is
-    drawn below it, so that it shows the floor plan, and its caption says so."""
+    """A picture of the map's leaves (write_leaf_sets for one set)."""
+    return write_leaf_sets(path, lambda: [(leaves, threshold_log)], resolution, include_free, view, slice_z, label,
+                           below_roof)
+
+
+def write_leaf_sets(path: Path, leaf_sets, resolution: float, include_free: bool, view: str = "top",
+                    slice_z: float | None = None, label: str = "", below_roof: bool = True, progress=False) -> dict:
+    """A picture of a map given as `leaf_sets()`: a fresh iterator of (leaves, threshold log-odds)
+    each time it is called (a snapshot's leaves a chunk at a time, a sharded map's parts), read
+    once for the bounds and once to draw, so memory is bounded by a set, not the map. A top view
+    of a map with a roof (`below_roof`, unless --slice) is drawn below it, so that it shows the
+    floor plan, and its caption says so."""
+    from voxtool.progress import bar
+
     if include_free:
         raise ParameterError(f"{path}: a picture always shows free space (legend: free); --free is for .ply/.pcd")
-    raster = picture(leaves, resolution, threshold_log, view, slice_z)
-    roof = roof_height(raster, resolution) if below_roof and view == "top" and slice_z is None else None
-    note = ""
-    if roof is not None:
-        from voxtool.keys import centre_key_range
-        from voxtool.maps.tree import crop
+    check_options(view, slice_z)
+    with bar(None, "export .png", progress, "pass") as passes:
+        lo = hi = None
+        for leaves, _ in leaf_sets():
+            bounds = key_bounds(leaves)
+            if bounds is not None:
+                lo = bounds[0] if lo is None else np.minimum(lo, bounds[0])
+                hi = bounds[1] if hi is None else np.maximum(hi, bounds[1])
+        if lo is None:
+            raise ParameterError(f"{path}: the map is empty: there is nothing to draw")
+        passes.update(1)
+        layer = slice_layer(slice_z, resolution) if slice_z is not None else None
 
-        _, top_key = centre_key_range(0.0, roof, resolution)
-        below = crop(leaves, np.zeros(3, np.int64), np.array([65535, 65535, int(top_key)]))
-        if len(below):
-            raster = picture(below, resolution, threshold_log, view, None)
-            note = (f" · below the roof at {roof:.2f} m (the floor plan; --crop with another zmax to choose the "
-                    "heights, --view side for the walls)")
+        def draw(keep=None) -> Raster:
+            raster = Raster.covering(view, lo, hi, layer)
+            for leaves, threshold in leaf_sets():
+                raster.add(leaves if keep is None else keep(leaves), threshold)
+            passes.update(1)
+            return raster
+
+        raster = draw()
+        roof = roof_height(raster, resolution) if below_roof and view == "top" and slice_z is None else None
+        note = ""
+        if roof is not None:
+            from voxtool.keys import centre_key_range
+            from voxtool.maps.tree import crop
+
+            _, top_key = centre_key_range(0.0, roof, resolution)
+            box = (np.zeros(3, np.int64), np.array([65535, 65535, int(top_key)]))
+            below = draw(lambda leaves: crop(leaves, *box))
+            if (below.state == OCCUPIED).any():
+                raster = below
+                note = (f" · below the roof at {roof:.2f} m (the floor plan; --crop with another zmax to choose the "
+                        "heights, --view side for the walls)")
     width, height = save(figure(raster, resolution, (label or path.stem) + note), path)
     out = {**figures(raster), "width": width, "height": height}
     if note:
@@ -266,29 +299,19 @@ def write_png(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
 
 def picture_of_parts(path: Path, output: Path, include_free: bool, progress=False, view: str = "top",
                      slice_z: float | None = None, label: str = "") -> dict:
-    """write_png for a sharded map: one pass over the parts for the bounds, one to draw."""
+    """write_png for a sharded map, part by part (memory: its largest part)."""
     from voxtool.io import sharded
-    from voxtool.progress import track
 
-    if include_free:
-        raise ParameterError(f"{output}: a picture always shows free space (legend: free); --free is for .ply/.pcd")
-    check_options(view, slice_z)
     manifest = sharded.read_manifest(path)
-    parts = len(manifest["parts"])
-    lo = hi = None
-    for _, backend in track(sharded.iter_parts(path), parts, "export .png (bounds)", progress, "part"):
-        bounds = key_bounds(backend.leaves())
-        if bounds is not None:
-            lo = bounds[0] if lo is None else np.minimum(lo, bounds[0])
-            hi = bounds[1] if hi is None else np.maximum(hi, bounds[1])
-    if lo is None:
-        raise ParameterError(f"{path}: the map is empty: there is nothing to draw")
-    resolution = manifest["map_params"]["resolution"]
-    raster = Raster.covering(view, lo, hi, slice_layer(slice_z, resolution) if slice_z is not None else None)
-    for _, backend in track(sharded.iter_parts(path, check_hash=False), parts, "export .png", progress, "part"):
-        raster.add(backend.leaves(), backend.sensor.threshold_log)
-    width, height = save(figure(raster, resolution, label or path.name), output)
-    return {**figures(raster), "width": width, "height": height}
+    checked = []  # the parts' hashes are checked on the first pass only
+
+    def parts():
+        for _, backend in sharded.iter_parts(path, check_hash=not checked):
+            yield backend.leaves(), backend.sensor.threshold_log
+        checked.append(True)
+
+    return write_leaf_sets(output, parts, manifest["map_params"]["resolution"], include_free, view, slice_z,
+                           label or path.name, progress=progress)
 
 
 BACKGROUND_OCCUPIED_RGB = (0.55, 0.55, 0.55)

@@ -140,6 +140,27 @@ def write_snapshot(path: str | Path, header: dict, arrays: dict[str, np.ndarray 
 
 def parse_snapshot(blob: bytes, where: str = "snapshot") -> Snapshot:
     """Decode snapshot bytes, checking magic, version, every length and every CRC first."""
+    header, entries = _table(blob, where)
+    arrays: dict[str, np.ndarray] = {}
+    leaves = None
+    if "leaf_codes" in entries:  # first, in bounded pieces: it says how large the rest may be
+        e = entries.pop("leaf_codes")
+        arrays["leaf_codes"] = np.concatenate(list(_leaf_code_pieces(blob, e, where, LEAF_PIECE)) or
+                                              [np.empty(0, np.int64)])
+        leaves = arrays["leaf_codes"].shape[0]
+    for name, e in entries.items():
+        _check_expansion(e, leaves, where)
+        chunk = blob[e["lo"] : e["lo"] + e["stored"]]
+        data = bytes(chunk) if e["codec"] == "raw" else zstd_exact(chunk, e["raw"], f"{where}: array '{name}'")
+        if len(data) != e["raw"]:
+            raise FormatError(f"{where}: array '{name}' decompressed to {len(data)} bytes, declared {e['raw']}")
+        arrays[name] = np.frombuffer(data, dtype=DTYPES[e["dtype"]]).reshape(e["shape"]).copy()
+    return Snapshot(header, arrays)
+
+
+def _table(blob, where: str) -> tuple[dict, dict[str, dict]]:
+    """(header, array table entries by name) of snapshot bytes (or a memory map of them), with
+    the magic, version, header, every declared size and every CRC checked; nothing decompressed."""
     if len(blob) < _FIXED.size + 4:
         raise FormatError(f"{where}: file of {len(blob)} bytes is too short to be a snapshot")
     magic, version, _flags, head_len = _FIXED.unpack_from(blob, 0)
@@ -165,23 +186,76 @@ def parse_snapshot(blob: bytes, where: str = "snapshot") -> Snapshot:
     entries = {}
     for entry in header["arrays"]:
         e = _entry(entry, where, payload_start, payload_end)
-        chunk = blob[e["lo"] : e["lo"] + e["stored"]]
-        if zlib.crc32(chunk) != e["crc"]:
+        if zlib.crc32(memoryview(blob)[e["lo"] : e["lo"] + e["stored"]]) != e["crc"]:
             raise FormatError(f"{where}: array '{e['name']}' CRC mismatch")
-        entries[e["name"]] = (e, chunk)
-    arrays: dict[str, np.ndarray] = {}
-    leaves = None
-    if "leaf_codes" in entries:  # first, in bounded pieces: it says how large the rest may be
-        e, chunk = entries.pop("leaf_codes")
-        arrays["leaf_codes"] = _leaf_codes(chunk, e, where)
-        leaves = arrays["leaf_codes"].shape[0]
-    for name, (e, chunk) in entries.items():
-        _check_expansion(e, leaves, where)
-        data = bytes(chunk) if e["codec"] == "raw" else zstd_exact(chunk, e["raw"], f"{where}: array '{name}'")
-        if len(data) != e["raw"]:
-            raise FormatError(f"{where}: array '{name}' decompressed to {len(data)} bytes, declared {e['raw']}")
-        arrays[name] = np.frombuffer(data, dtype=DTYPES[e["dtype"]]).reshape(e["shape"]).copy()
-    return Snapshot(header, arrays)
+        entries[e["name"]] = e
+    return header, entries
+
+
+def stream_arrays(path: str | Path, names: tuple[str, ...], piece: int = 1 << 22):
+    """(header, pieces): the header of a snapshot file and an iterator of tuples, one piece of
+    each named array (`piece` entries, the last shorter), decompressed as they are asked for, so
+    that memory is bounded by a piece and the file (memory-mapped), not the arrays. The arrays
+    must be one-dimensional and of one length; `leaf_codes`, when named, is checked to rise
+    strictly as parse_snapshot checks it. Every CRC is checked before the first piece."""
+    import mmap
+
+    path = Path(path)
+    try:
+        handle = open(path, "rb")
+    except OSError as err:
+        raise FormatError(f"{path}: cannot read: {err.strerror}") from err
+    with handle:
+        try:
+            blob = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ)
+        except ValueError as err:  # an empty file
+            raise FormatError(f"{path}: file of 0 bytes is too short to be a snapshot") from err
+    header, entries = _table(blob, str(path))
+    missing = [n for n in names if n not in entries]
+    if missing:
+        raise FormatError(f"{path}: snapshot lacks array '{missing[0]}'")
+    chosen = [entries[n] for n in names]
+    counts = {int(np.prod(e["shape"])) for e in chosen}
+    if len(counts) != 1 or any(len(e["shape"]) != 1 for e in chosen):
+        raise FormatError(f"{path}: arrays {', '.join(names)} differ in length")
+    (count,) = counts
+    for e in chosen:
+        if e["name"] != "leaf_codes":
+            _check_expansion(e, count if "leaf_codes" in names else None, str(path))
+
+    def pieces():
+        readers = [_leaf_code_pieces(blob, e, str(path), piece) if e["name"] == "leaf_codes"
+                   else _pieces(blob, e, str(path), piece) for e in chosen]
+        yield from zip(*readers, strict=True)
+
+    return header, pieces()
+
+
+def _stream(blob, e: dict):
+    import io
+
+    chunk = memoryview(blob)[e["lo"] : e["lo"] + e["stored"]]
+    return io.BytesIO(chunk) if e["codec"] == "raw" else zstandard.ZstdDecompressor().stream_reader(chunk)
+
+
+def _pieces(blob, e: dict, where: str, piece: int):
+    """An array's pieces of `piece` entries, decompressed one at a time."""
+    dtype = np.dtype(DTYPES[e["dtype"]])
+    total = 0
+    try:
+        with _stream(blob, e) as reader:
+            while total < e["raw"]:
+                data = reader.read(min(piece * dtype.itemsize, e["raw"] - total))
+                if not data or len(data) % dtype.itemsize:
+                    break
+                total += len(data)
+                yield np.frombuffer(data, dtype=dtype)
+            if total == e["raw"] and reader.read(1):
+                raise FormatError(f"{where}: array '{e['name']}' decompresses to more than its declared {e['raw']} bytes")
+    except zstandard.ZstdError as err:
+        raise FormatError(f"{where}: array '{e['name']}' does not decompress ({err})") from err
+    if total != e["raw"]:
+        raise FormatError(f"{where}: array '{e['name']}' decompressed to {total} bytes, declared {e['raw']}")
 
 
 def _entry(entry, where: str, payload_start: int, payload_end: int) -> dict:
@@ -227,35 +301,19 @@ def _check_expansion(e: dict, leaves: int | None, where: str) -> None:
                       f"than a map of {leaves or 0:,} leaves expands to: the file is corrupt (or a decompression bomb)")
 
 
-def _leaf_codes(chunk, e: dict, where: str) -> np.ndarray:
-    """The leaf codes, decompressed LEAF_PIECE at a time and refused at the first piece that does
-    not rise strictly inside the 48-bit key space (the tree's order), before the rest is read."""
-    import io
-
+def _leaf_code_pieces(blob, e: dict, where: str, piece: int):
+    """The leaf codes, `piece` at a time, each checked to rise strictly inside the 48-bit key
+    space (the tree's order) before the next is decompressed: a bomb of zeros stops at once."""
     if e["dtype"] != "int64" or len(e["shape"]) != 1:
         raise FormatError(f"{where}: array 'leaf_codes' must be one-dimensional int64")
-    pieces, total, last = [], 0, -1
-    reader = io.BytesIO(chunk) if e["codec"] == "raw" else zstandard.ZstdDecompressor().stream_reader(chunk)
-    try:
-        with reader:
-            while total < e["raw"]:
-                data = reader.read(min(8 * LEAF_PIECE, e["raw"] - total))
-                if not data or len(data) % 8:
-                    break
-                piece = np.frombuffer(data, dtype="<i8")
-                if piece[0] <= last or np.any(piece[1:] <= piece[:-1]) or piece[-1] >= 1 << 48:
-                    raise FormatError(f"{where}: leaves are not sorted or overlap (leaf codes must rise strictly "
-                                      f"below 2^48; found at leaf {total // 8 + _first_fall(piece, last):,})")
-                last = int(piece[-1])
-                pieces.append(piece)
-                total += len(data)
-            if reader.read(1):
-                raise FormatError(f"{where}: array 'leaf_codes' decompresses to more than its declared {e['raw']} bytes")
-    except zstandard.ZstdError as err:
-        raise FormatError(f"{where}: array 'leaf_codes' does not decompress ({err})") from err
-    if total != e["raw"]:
-        raise FormatError(f"{where}: array 'leaf_codes' decompressed to {total} bytes, declared {e['raw']}")
-    return np.concatenate(pieces) if pieces else np.empty(0, dtype=np.int64)
+    last, seen = -1, 0
+    for codes in _pieces(blob, e, where, piece):
+        if codes[0] <= last or np.any(codes[1:] <= codes[:-1]) or codes[-1] >= 1 << 48:
+            raise FormatError(f"{where}: leaves are not sorted or overlap (leaf codes must rise strictly below "
+                              f"2^48; found at leaf {seen + _first_fall(codes, last):,})")
+        last = int(codes[-1])
+        seen += codes.shape[0]
+        yield codes
 
 
 def _first_fall(piece: np.ndarray, last: int) -> int:
