@@ -271,7 +271,8 @@ def test_one_source_encoded_on_workers_is_the_log_named(tmp_path):
     packet for packet the log written without Dask."""
     from voxtool.codec.log import read_log
 
-    here, there = tmp_path / "here.mcap", tmp_path / "r1.mcap"
+    here, there = tmp_path / "here" / "r1.mcap", tmp_path / "r1.mcap"  # one name: the robot is named after it
+    here.parent.mkdir()
     assert cli("encode", SAMPLE, "-o", here, "--stop", 2, "--no-progress")[0] == 0
     code, text, err = cli("encode", SAMPLE, "-o", there, "--stop", 2, "--workers", "1", "--json", "--no-progress")
     assert code == 0, err

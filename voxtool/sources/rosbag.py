@@ -25,7 +25,7 @@ def bag_errors() -> tuple:
     from rosbags.rosbag2 import ReaderError as Reader2Error
 
     errors = [AnyReaderError, Reader1Error, Reader2Error, ValueError, EOFError, KeyError, IndexError, struct.error,
-              zlib.error, AssertionError]
+              zlib.error, AssertionError, OSError, BagBomb]
     try:
         import sqlite3
 
@@ -33,6 +33,63 @@ def bag_errors() -> tuple:
     except ImportError:  # a Python built without sqlite reads no .db3 bag anyway
         pass
     return tuple(errors)
+
+
+class BagBomb(Exception):
+    """A bag chunk that expands beyond what real data does (_bounded)."""
+
+
+def _bounded(name: str, decompress) -> callable:
+    """A chunk decompressor that stops at what real data expands to (compression.check_expansion's
+    bound on the chunk's compressed bytes) instead of expanding a bomb to its end."""
+    from voxtool.compression import EXPANSION_RATIO, EXPANSION_SMALL
+
+    def bounded(data, *_):
+        limit = EXPANSION_SMALL + EXPANSION_RATIO * len(data)
+        out = decompress(bytes(data), limit + 1)
+        if len(out) > limit:
+            raise BagBomb(f"a {name} chunk of {len(data):,} bytes expands beyond {limit:,} bytes: more than real "
+                          "data expands to (a corrupt bag, or a decompression bomb)")
+        return out
+
+    return bounded
+
+
+def _bz2(data: bytes, most: int) -> bytes:
+    import bz2
+
+    return bz2.BZ2Decompressor().decompress(data, max_length=most)
+
+
+def _lz4(data: bytes, most: int) -> bytes:
+    import lz4.frame
+
+    return lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=most)
+
+
+def _zstd(data: bytes, most: int) -> bytes:
+    import zstandard
+
+    with zstandard.ZstdDecompressor().stream_reader(data) as reader:
+        return reader.read(most)
+
+
+_BOUNDED = False
+
+
+def bound_bag_chunks() -> None:
+    """rosbags decompresses a chunk whole, to whatever it expands to (a ROS 1 chunk by bz2 or lz4,
+    a ROS 2 MCAP chunk by zstd or lz4). Its decompressor tables are swapped, once per process,
+    for bounded ones, so that a bag bomb is refused before it fills memory."""
+    global _BOUNDED
+    if _BOUNDED:
+        return
+    from rosbags.rosbag1 import reader as ros1
+    from rosbags.rosbag2 import storage_mcap as ros2
+
+    ros1.decompressors.update(bz2=_bounded("bz2", _bz2), lz4=_bounded("lz4", _lz4))
+    ros2.DECOMPRESSORS.update(zstd=_bounded("zstd", _zstd), lz4=_bounded("lz4", _lz4))
+    _BOUNDED = True
 
 
 def bag_root(path: Path) -> Path:
@@ -58,6 +115,7 @@ class BagCloudSource:
         from voxtool.sources.mcap_ros2 import scan_topic
 
         self.path = Path(path)
+        bound_bag_chunks()
         root = bag_root(self.path)
         store = get_typestore(Stores.ROS1_NOETIC if root.suffix.lower() == ".bag" else Stores.ROS2_HUMBLE)
         try:
