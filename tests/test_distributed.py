@@ -281,7 +281,7 @@ def test_one_source_encoded_on_workers_is_the_log_named(tmp_path):
     assert len(packets[0]) > 0 and packets[0] == packets[1]
 
 
-def test_scheduler_address_runs_on_a_cluster_started_by_dask_commands(tmp_path):
+def test_scheduler_address_runs_on_a_cluster_started_by_dask_commands(tmp_path, monkeypatch):
     """The README's second way: `dask scheduler` and `dask worker ADDRESS` started apart (real
     processes), then `voxtool ... --scheduler ADDRESS`: one map equal to the single-process map,
     a fleet's rows, and an address nobody listens on as one line and exit 1."""
@@ -318,7 +318,9 @@ def test_scheduler_address_runs_on_a_cluster_started_by_dask_commands(tmp_path):
             p.terminate()
         for p in procs:
             p.wait(30)
-    # nobody listening (Dask retries for 10 s), and addresses that are not addresses
+    # nobody listening (Dask retries until VOXTOOL_CONNECT_TIMEOUT, 10 s by default), and addresses
+    # that are not addresses
+    monkeypatch.setenv("VOXTOOL_CONNECT_TIMEOUT", "2")
     for address, exit_code in (("tcp://127.0.0.1:9", 1), ("127.0.0.1", 2), ("nonsense://x:1", 2)):
         code, _, err = cli("build", SAMPLE, "-o", tmp_path / "x.vxm", "--scheduler", address)
         assert code == exit_code and err.count("\n") == 1 and address in err, err

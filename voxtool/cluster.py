@@ -27,6 +27,18 @@ def wanted(workers: int | None, scheduler: str | None) -> bool:
 
 
 @contextmanager
+def connect_timeout() -> str:
+    """How long --scheduler waits for its scheduler to answer: VOXTOOL_CONNECT_TIMEOUT seconds
+    (default 10; Dask retries the connection until then)."""
+    import os
+
+    try:
+        seconds = float(os.environ.get("VOXTOOL_CONNECT_TIMEOUT", "10"))
+    except ValueError:
+        raise ParameterError(f"VOXTOOL_CONNECT_TIMEOUT={os.environ['VOXTOOL_CONNECT_TIMEOUT']}: give seconds") from None
+    return f"{max(seconds, 0.1):g}s"
+
+
 def dask_client(workers: int | None = None, scheduler: str | None = None, quiet: bool = False) -> Iterator:
     """A dask.distributed Client; a LocalCluster of `workers` processes (one thread each: voxtool's
     kernels are the parallel part) is started here and shut down on leaving, Ctrl-C included.
@@ -42,7 +54,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, quiet:
     try:
         if scheduler is not None:
             try:
-                client = Client(scheduler, timeout="10s")
+                client = Client(scheduler, timeout=connect_timeout())
             except ValueError as err:  # Dask's own words: "unknown address scheme", "missing port number"
                 raise ParameterError(f"--scheduler {scheduler}: not a Dask scheduler address ({err}; "
                                      "for example tcp://10.0.0.5:8786)") from None
