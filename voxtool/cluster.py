@@ -26,7 +26,6 @@ def wanted(workers: int | None, scheduler: str | None) -> bool:
     return workers is not None or scheduler is not None
 
 
-@contextmanager
 def connect_timeout() -> str:
     """How long --scheduler waits for its scheduler to answer: VOXTOOL_CONNECT_TIMEOUT seconds
     (default 10; Dask retries the connection until then)."""
@@ -39,6 +38,7 @@ def connect_timeout() -> str:
     return f"{max(seconds, 0.1):g}s"
 
 
+@contextmanager
 def dask_client(workers: int | None = None, scheduler: str | None = None, quiet: bool = False) -> Iterator:
     """A dask.distributed Client; a LocalCluster of `workers` processes (one thread each: voxtool's
     kernels are the parallel part) is started here and shut down on leaving, Ctrl-C included.
