@@ -218,3 +218,34 @@ def test_bag_chunks_are_decompressed_within_bounds(tmp_path):
     got = [s.points for s in open_source(real).scans]
     want = [s.points for s in open_source(d).scans]
     assert all(np.array_equal(a, b) for a, b in zip(got, want)) and len(got) == 3
+
+
+def test_a_ros2_bag_compressed_per_message_is_bounded_too(tmp_path):
+    """A ROS 2 bag written by rosbags with zstd message compression still reads (the PCD map),
+    and its message decompressor is the bounded one."""
+    from bag_writer import write_bag
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, Writer
+    from scenes import box_scene, yaw_quat
+
+    from voxtool.sources import open_source
+    from voxtool.sources.rosbag import BagBomb, bound_bag_chunks
+
+    scans = [(pts, o, yaw_quat(y)) for pts, o, y in box_scene(3, 300, seed=3)]
+    original = Writer.__init__
+
+    def compressed(self, path, **kw):
+        original(self, path, **kw)
+        self.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
+
+    Writer.__init__ = compressed
+    try:
+        bag = write_bag(tmp_path / "zbag", scans, "ros2-db3")
+    finally:
+        Writer.__init__ = original
+    assert "compression_mode: message" in (bag / "metadata.yaml").read_text()
+    assert len(list(open_source(bag).scans)) == 3
+    bound_bag_chunks()
+    from rosbags.rosbag2 import reader
+
+    with pytest.raises(BagBomb):
+        reader.zstd.decompress(zeros_frame(1 << 30))

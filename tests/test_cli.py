@@ -239,6 +239,9 @@ def test_cache_bench_on_sample_reports_consistent_rows(tmp_path):
     assert imread(plot).shape[:2] == (result["height"], result["width"])
     times, hits = cache_figure(result).axes[:2]
     assert len(times.containers) == len(PARTS) and len(times.get_yticklabels()) == len(rows)
+    # titled by the dataset, not by its scans' folder ('pcd', 'sample')
+    assert cache_figure({**result, "source": "/data/kaist03/pcd"}).axes[0].get_title(loc="left").startswith(
+        "kaist03-pcd at")
     stacked = np.sum([[bar.get_width() for bar in c] for c in times.containers], axis=0)
     assert np.allclose(stacked, [r["parts_s"] for r in rows])  # the bars are the measured parts
     assert [bar.get_width() for bar in hits.containers[0]] == pytest.approx([0] + [100 * r["hit_ratio"] for r in rows[1:]])
@@ -409,3 +412,18 @@ def test_every_commands_help_renders_its_example_blocks():
             block = doc.split("\b", 1)[1].strip("\n").split("\n\n")[0]
             for line in block.splitlines():
                 assert line.strip() in {shown.strip() for shown in out.splitlines()}, (name, line)
+
+
+def test_no_library_module_imports_the_command_line():
+    """The CLI is a thin layer over the library: no module outside voxtool/cli imports it (the
+    kernels' warm-up did, and the CLI imported it back: a circle)."""
+    import re
+    from pathlib import Path
+
+    import voxtool
+
+    root = Path(voxtool.__file__).parent
+    offenders = [str(p.relative_to(root)) for p in root.rglob("*.py")
+                 if "cli" not in p.relative_to(root).parts
+                 and re.search(r"^\s*(from voxtool\.cli\b|import voxtool\.cli\b)", p.read_text(), re.M)]
+    assert offenders == []

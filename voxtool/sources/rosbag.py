@@ -79,17 +79,32 @@ _BOUNDED = False
 
 def bound_bag_chunks() -> None:
     """rosbags decompresses a chunk whole, to whatever it expands to (a ROS 1 chunk by bz2 or lz4,
-    a ROS 2 MCAP chunk by zstd or lz4). Its decompressor tables are swapped, once per process,
-    for bounded ones, so that a bag bomb is refused before it fills memory."""
+    a ROS 2 MCAP chunk by zstd or lz4, a ROS 2 bag's messages by zstd). Its decompressors are
+    swapped, once per process, for bounded ones, so that a bag bomb is refused before it fills
+    memory (rosbags offers no limit of its own)."""
     global _BOUNDED
     if _BOUNDED:
         return
     from rosbags.rosbag1 import reader as ros1
     from rosbags.rosbag2 import storage_mcap as ros2
 
+    from rosbags.rosbag2 import reader as ros2_reader
+
     ros1.decompressors.update(bz2=_bounded("bz2", _bz2), lz4=_bounded("lz4", _lz4))
     ros2.DECOMPRESSORS.update(zstd=_bounded("zstd", _zstd), lz4=_bounded("lz4", _lz4))
+    ros2_reader.zstd = _MessageZstd(ros2_reader.zstd)  # a ROS 2 bag compressed message by message
     _BOUNDED = True
+
+
+class _MessageZstd:
+    """rosbags' zstd module with decompress() bounded (its file-mode reading streams to disk)."""
+
+    def __init__(self, real) -> None:
+        self._real = real
+        self.decompress = _bounded("zstd message", _zstd)
+
+    def __getattr__(self, name: str):
+        return getattr(self._real, name)
 
 
 def bag_root(path: Path) -> Path:
