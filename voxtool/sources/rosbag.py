@@ -86,9 +86,8 @@ def bound_bag_chunks() -> None:
     if _BOUNDED:
         return
     from rosbags.rosbag1 import reader as ros1
-    from rosbags.rosbag2 import storage_mcap as ros2
-
     from rosbags.rosbag2 import reader as ros2_reader
+    from rosbags.rosbag2 import storage_mcap as ros2
 
     ros1.decompressors.update(bz2=_bounded("bz2", _bz2), lz4=_bounded("lz4", _lz4))
     ros2.DECOMPRESSORS.update(zstd=_bounded("zstd", _zstd), lz4=_bounded("lz4", _lz4))
