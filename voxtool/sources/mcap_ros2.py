@@ -12,8 +12,8 @@ import numpy as np
 
 from voxtool.errors import FormatError, SourceError, mcap_problem
 from voxtool.geometry import Pose
-from voxtool.sources.ros_msgs import SCAN_TYPES, decode_scan
-from voxtool.sources.tf import POSE_TYPES, TF, SensorPoses, header_stamp
+from voxtool.sources.ros_msgs import SCAN_TYPES, scan_messages
+from voxtool.sources.tf import POSE_TYPES, TF, SensorPoses
 
 
 def _decode_errors() -> tuple:
@@ -131,40 +131,19 @@ class McapCloudSource:
         if times is not None and start < len(times):
             starting_at = int(times[start])
             index = int(np.searchsorted(times, starting_at, side="left"))  # messages before that log time
-        kind = self._msgtype.rsplit("/", 1)[-1]
         messages = self._reader.iter_messages(topics=[self.topic], log_time_order=True, starting_at=starting_at)
-        while True:
-            try:
-                item = next(messages, None)
-            except _decode_errors() as err:
-                bad = SourceError(f"{self.path}: cannot read message {index} of '{self.topic}': {mcap_problem(err)}")
-                if on_bad is None:
-                    raise bad from err
-                on_bad(index, bad)
-                return
-            if item is None or (stop is not None and index >= stop):
-                return
+
+        def decode(item) -> tuple:
             schema, channel, message = item
-            if index >= start and (index - start) % every == 0:
-                try:
-                    if schema.id not in decoders:
-                        decoders[schema.id] = self._decoders.decoder_for(channel.message_encoding, schema)
-                    if decoders[schema.id] is None:
-                        raise SourceError(f"{self.path}: '{self.topic}' is encoded as '{channel.message_encoding}', "
-                                          "not ROS 2 CDR (cdr)")
-                    msg = decoders[schema.id](message.data)
-                    points = decode_scan(f"{self.path}: {kind} message {index}", self._msgtype, msg)
-                    stamp = header_stamp(msg.header)
-                    pose = self._poses.pose_at(msg.header.frame_id, stamp)
-                except (SourceError, *_decode_errors()) as err:
-                    bad = err if isinstance(err, SourceError) else SourceError(
-                        f"{self.path}: cannot read message {index} of '{self.topic}': {mcap_problem(err)}")
-                    if on_bad is None:
-                        raise bad from err
-                    on_bad(index, bad)
-                else:
-                    yield index, points, pose, stamp, len(message.data)
-            index += 1
+            if schema.id not in decoders:
+                decoders[schema.id] = self._decoders.decoder_for(channel.message_encoding, schema)
+            if decoders[schema.id] is None:
+                raise SourceError(f"{self.path}: '{self.topic}' is encoded as '{channel.message_encoding}', "
+                                  "not ROS 2 CDR (cdr)")
+            return decoders[schema.id](message.data), len(message.data)
+
+        yield from scan_messages(messages, decode, self._poses, str(self.path), self.topic, self._msgtype,
+                                 _decode_errors(), mcap_problem, start, stop, every, on_bad, index)
 
 
 def scan_topic(where: str, topics: dict[str, str], topic: str | None) -> str:

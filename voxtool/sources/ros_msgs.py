@@ -4,6 +4,8 @@ rosbags and mcap-ros2 decode them (every declared size checked against the data)
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+
 import numpy as np
 
 from voxtool.errors import SourceError
@@ -66,3 +68,42 @@ def decode_laserscan(where: str, msg) -> np.ndarray:
 def decode_scan(where: str, msgtype: str, msg) -> np.ndarray:
     """The sensor-frame points of a PointCloud2 or LaserScan message."""
     return decode_laserscan(where, msg) if msgtype == LASER else decode_pointcloud2(where, msg)
+
+
+def scan_messages(items: Iterator, decode: Callable, poses, where: str, topic: str, msgtype: str, errors: tuple,
+                  problem: Callable[[Exception], str], start: int, stop: int | None, every: int,
+                  on_bad: Callable | None, index: int = 0) -> Iterator[tuple]:
+    """(index, sensor points, pose, stamp, bytes) of a log's scan messages start, start + every,
+    ... before stop, whatever reads the log (an MCAP file, a bag): `items` are its raw messages
+    from message `index` on, `decode(item)` their (message, bytes), `poses` a tf.SensorPoses. A
+    message that cannot be decoded or posed goes to `on_bad` (which raises, or records it and
+    lets reading go on); a log that cannot be read on from a message ends there."""
+    from voxtool.sources.tf import header_stamp
+
+    kind = msgtype.rsplit("/", 1)[-1]
+    while True:
+        try:
+            item = next(items, None)
+        except errors as err:
+            bad = SourceError(f"{where}: cannot read on from {kind} message {index} of '{topic}' ({problem(err)})")
+            if on_bad is None:
+                raise bad from err
+            on_bad(index, bad)
+            return
+        if item is None or (stop is not None and index >= stop):
+            return
+        if index >= start and (index - start) % every == 0:
+            try:
+                msg, nbytes = decode(item)
+                points = decode_scan(f"{where}: {kind} message {index} of '{topic}'", msgtype, msg)
+                stamp = header_stamp(msg.header)
+                pose = poses.pose_at(msg.header.frame_id, stamp)
+            except (SourceError, *errors) as err:
+                bad = err if isinstance(err, SourceError) else SourceError(
+                    f"{where}: {kind} message {index} of '{topic}' cannot be decoded ({problem(err)})")
+                if on_bad is None:
+                    raise bad from err
+                on_bad(index, bad)
+            else:
+                yield index, points, pose, stamp, nbytes
+        index += 1

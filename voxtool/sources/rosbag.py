@@ -11,8 +11,8 @@ import numpy as np
 
 from voxtool.errors import SourceError
 from voxtool.geometry import Pose
-from voxtool.sources.ros_msgs import decode_scan
-from voxtool.sources.tf import POSE_TYPES, TF, SensorPoses, header_stamp
+from voxtool.sources.ros_msgs import scan_messages
+from voxtool.sources.tf import POSE_TYPES, TF, SensorPoses
 
 
 def bag_errors() -> tuple:
@@ -179,34 +179,11 @@ class BagCloudSource:
         lets the reading go on); a bag that cannot be read on from a message ends there."""
         if not self._poses_read:
             self._read_poses()
-        index = 0
-        kind = self._msgtype.rsplit("/", 1)[-1]
         messages = self._reader.messages(connections=self._connections([self.topic]))
-        while True:
-            try:
-                item = next(messages, None)
-            except bag_errors() as err:
-                bad = SourceError(f"{self.path}: cannot read on from {kind} message {index} of '{self.topic}' "
-                                  f"({_problem(err)})")
-                if on_bad is None:
-                    raise bad from err
-                on_bad(index, bad)
-                return
-            if item is None or (stop is not None and index >= stop):
-                return
+
+        def decode(item) -> tuple:
             conn, _, raw = item
-            if index >= start and (index - start) % every == 0:
-                try:
-                    msg = self._reader.deserialize(raw, conn.msgtype)
-                    points = decode_scan(f"{self.path}: {kind} message {index} of '{self.topic}'", self._msgtype, msg)
-                    stamp = header_stamp(msg.header)
-                    pose = self._poses.pose_at(msg.header.frame_id, stamp)
-                except (SourceError, *bag_errors()) as err:
-                    bad = err if isinstance(err, SourceError) else SourceError(
-                        f"{self.path}: {kind} message {index} of '{self.topic}' cannot be decoded ({_problem(err)})")
-                    if on_bad is None:
-                        raise bad from err
-                    on_bad(index, bad)
-                else:
-                    yield index, points, pose, stamp, len(raw)
-            index += 1
+            return self._reader.deserialize(raw, conn.msgtype), len(raw)
+
+        yield from scan_messages(messages, decode, self._poses, str(self.path), self.topic, self._msgtype, bag_errors(),
+                                 _problem, start, stop, every, on_bad)
