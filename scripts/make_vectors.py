@@ -34,9 +34,20 @@ def main() -> None:
             "leaf_depths": np.array([16, 16, 15], np.uint8),
             "leaf_values": np.array([-0.4054651, 0.8472979, -1.9924302], np.float32)},
     }
-    for name, arrays in cases.items():
-        (OUT / f"{name}.vxm").write_bytes(snapshot_bytes(base, arrays, codec="raw"))
-        (OUT / f"{name}.json").write_text(json.dumps(describe(base, arrays), indent=1) + "\n")
+    # the delta8 layout of leaf codes (formats/snapshot.md): differences from the code before, as
+    # 8 byte planes; a zstd snapshot stores its leaf codes so, compressed
+    planed = {"snapshot_delta8": {
+        "leaf_codes": np.array([0xE00000000000, 0xE00000000001, 0xE00000000008, 0xE00000000040,
+                                0xF00000000000], np.int64),
+        "leaf_depths": np.array([16, 16, 15, 14, 1], np.uint8),
+        "leaf_values": np.array([-0.4054651, 0.8472979, -1.9924302, 3.5, -2.0], np.float32)}}
+    for name, arrays in {**cases, **planed}.items():
+        names = ("leaf_codes",) if name in planed else ()
+        (OUT / f"{name}.vxm").write_bytes(snapshot_bytes(base, arrays, codec="raw", planed=names))
+        described = describe(base, arrays)
+        if names:
+            described["planed"] = list(names)
+        (OUT / f"{name}.json").write_text(json.dumps(described, indent=1) + "\n")
 
 
 def sharded() -> None:

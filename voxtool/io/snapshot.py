@@ -25,6 +25,7 @@ import zstandard
 from voxtool.atomic import atomic_writer
 from voxtool.compression import zstd_exact
 from voxtool.errors import FormatError
+from voxtool.io.delta_planes import BLOCK, PlanesEncoder, decode_blocks, encode_planes, rechunk
 
 MAGIC = b"\x89VXM\r\n\x1a\n"
 VERSION = 1
@@ -42,7 +43,9 @@ class Snapshot:
     arrays: dict[str, np.ndarray]
 
 
-CODECS = ("zstd", "raw")
+CODECS = ("zstd", "raw", "zstd-delta8", "delta8")  # delta8: io.delta_planes, then zstd or not
+PLANED = ("zstd-delta8", "delta8")
+DEFAULT_PLANED = ("leaf_codes",)  # arrays a zstd snapshot stores as delta8 planes (sorted int64)
 
 
 @dataclass
@@ -62,12 +65,19 @@ def _raw(array: np.ndarray, dtype_name: str) -> memoryview:
     return memoryview(np.ascontiguousarray(array, dtype=DTYPES[dtype_name])).cast("B")
 
 
-def _stored(raw: memoryview, compressor, codec: str) -> bytes:
+def _stored(raw, compressor, codec: str) -> bytes:
     """Bytes as the payload holds them; `compressor`: a zstd compressor or stream (compress())."""
-    return compressor.compress(raw) if codec == "zstd" else raw.tobytes()
+    return compressor.compress(raw) if codec.startswith("zstd") else bytes(raw)
 
 
-def _stored_chunked(group: ChunkedArrays, level: int, codec: str) -> dict[str, tuple[bytes, int]]:
+def _array_codec(name: str, dtype_name: str, codec: str, planed: tuple[str, ...]) -> str:
+    """An array's codec: the snapshot's, in the delta8 layout for the `planed` int64 arrays."""
+    if name in planed and dtype_name == "int64":
+        return "zstd-delta8" if codec == "zstd" else "delta8"
+    return codec
+
+
+def _stored_chunked(group: ChunkedArrays, level: int, codecs: list[str]) -> dict[str, tuple[bytes, int]]:
     """name -> (stored bytes, raw bytes) of every array of a group, in one pass over its chunks
     (a compressor each: one zstd context streams one frame at a time). The largest array's
     stream has every core when it is large, the others one worker each: a multi-threaded stream
@@ -75,20 +85,29 @@ def _stored_chunked(group: ChunkedArrays, level: int, codec: str) -> dict[str, t
     sizes = [group.length * np.dtype(DTYPES[d]).itemsize for d in group.dtypes]
     largest = int(np.argmax(sizes)) if max(sizes) >= ALL_CORES_FROM else -1
     streams = [zstandard.ZstdCompressor(level=level, threads=-1 if k == largest else 1).compressobj(size=n)
-               if codec == "zstd" else None for k, n in enumerate(sizes)]
+               if codecs[k].startswith("zstd") else None for k, n in enumerate(sizes)]
+    planers = [PlanesEncoder() if codecs[k] in PLANED else None for k in range(len(sizes))]
     out: list[list[bytes]] = [[] for _ in group.names]
     for pieces in group.chunks():
         for k, piece in enumerate(pieces):
-            out[k].append(_stored(_raw(piece, group.dtypes[k]), streams[k], codec))
+            raw = _raw(piece, group.dtypes[k]) if planers[k] is None else planers[k].encode(piece)
+            out[k].append(_stored(raw, streams[k], codecs[k]))
     for k, stream in enumerate(streams):
+        if planers[k] is not None:
+            out[k].append(_stored(planers[k].finish(), stream, codecs[k]))
         if stream is not None:
             out[k].append(stream.flush())
     return {name: (b"".join(parts), n) for name, parts, n in zip(group.names, out, sizes)}
 
 
-def _snapshot_parts(header: dict, arrays: dict[str, np.ndarray | ChunkedArrays], codec: str, level: int) -> list:
+def _snapshot_parts(header: dict, arrays: dict[str, np.ndarray | ChunkedArrays], codec: str, level: int,
+                    planed: tuple[str, ...] | None = None) -> list:
     """The snapshot's bytes before its CRC, as pieces (fixed fields and header, then each
-    payload): the header lists every payload's size and CRC, so all are compressed first."""
+    payload): the header lists every payload's size and CRC, so all are compressed first.
+    `planed`: the int64 arrays stored as delta8 planes (default: the leaf codes of a zstd
+    snapshot, none of a raw one)."""
+    if planed is None:
+        planed = DEFAULT_PLANED if codec == "zstd" else ()
     compressor = zstandard.ZstdCompressor(level=level, threads=-1)
     payloads = []
     table = []
@@ -96,17 +115,21 @@ def _snapshot_parts(header: dict, arrays: dict[str, np.ndarray | ChunkedArrays],
     grouped: dict[str, tuple[bytes, int]] = {}
     for name, array in arrays.items():
         if isinstance(array, ChunkedArrays):
-            if name not in grouped:
-                grouped.update(_stored_chunked(array, level, codec))
             dtype_name, shape = array.dtypes[array.names.index(name)], [array.length]
+            array_codec = _array_codec(name, dtype_name, codec, planed)
+            if name not in grouped:
+                grouped.update(_stored_chunked(array, level, [_array_codec(n, d, codec, planed)
+                                                              for n, d in zip(array.names, array.dtypes)]))
             stored, raw_bytes = grouped[name]
         else:
             dtype_name, shape = np.dtype(array.dtype).name, list(array.shape)
             if dtype_name not in DTYPES:
                 raise ValueError(f"array {name}: dtype {dtype_name} not storable")
-            stored = _stored(_raw(array, dtype_name), compressor, codec)
+            array_codec = _array_codec(name, dtype_name, codec, planed)
+            raw = encode_planes(array.ravel()) if array_codec in PLANED else _raw(array, dtype_name)
+            stored = _stored(raw, compressor, array_codec)
             raw_bytes = array.nbytes
-        table.append({"name": name, "dtype": dtype_name, "shape": shape, "codec": codec,
+        table.append({"name": name, "dtype": dtype_name, "shape": shape, "codec": array_codec,
                       "offset": offset, "stored_bytes": len(stored), "raw_bytes": raw_bytes,
                       "crc32": zlib.crc32(stored)})
         payloads.append(stored)
@@ -119,12 +142,14 @@ def _snapshot_parts(header: dict, arrays: dict[str, np.ndarray | ChunkedArrays],
     return [_FIXED.pack(MAGIC, VERSION, 0, len(head)) + head, *payloads]
 
 
-def snapshot_bytes(header: dict, arrays: dict[str, np.ndarray | ChunkedArrays], codec: str = "zstd", level: int = 3) -> bytes:
+def snapshot_bytes(header: dict, arrays: dict[str, np.ndarray | ChunkedArrays], codec: str = "zstd", level: int = 3,
+                   planed: tuple[str, ...] | None = None) -> bytes:
     """Encode a snapshot. `header` must be JSON-serialisable; 'arrays' is filled in here.
-    codec "raw" stores arrays uncompressed (byte-exact golden vectors across zstd versions).
-    zstd runs on every core: its multi-threaded frames are the same bytes whatever the number
-    of threads, so a snapshot does not depend on the machine that wrote it."""
-    body = b"".join(_snapshot_parts(header, arrays, codec, level))
+    codec "raw" stores arrays uncompressed (byte-exact golden vectors across zstd versions);
+    `planed`: the int64 arrays stored as delta8 planes (_snapshot_parts). zstd runs on every
+    core: its multi-threaded frames are the same bytes whatever the number of threads, so a
+    snapshot does not depend on the machine that wrote it."""
+    body = b"".join(_snapshot_parts(header, arrays, codec, level, planed))
     return body + struct.pack("<I", zlib.crc32(body))
 
 
@@ -150,6 +175,10 @@ def parse_snapshot(blob: bytes, where: str = "snapshot") -> Snapshot:
         leaves = arrays["leaf_codes"].shape[0]
     for name, e in entries.items():
         _check_expansion(e, leaves, where)
+        if e["codec"] in PLANED:
+            arrays[name] = np.concatenate(list(_pieces(blob, e, where, BLOCK)) or [np.empty(0, np.int64)])
+            arrays[name] = arrays[name].reshape(e["shape"])
+            continue
         chunk = blob[e["lo"] : e["lo"] + e["stored"]]
         data = bytes(chunk) if e["codec"] == "raw" else zstd_exact(chunk, e["raw"], f"{where}: array '{name}'")
         if len(data) != e["raw"]:
@@ -235,21 +264,33 @@ def _stream(blob, e: dict):
     import io
 
     chunk = memoryview(blob)[e["lo"] : e["lo"] + e["stored"]]
-    return io.BytesIO(chunk) if e["codec"] == "raw" else zstandard.ZstdDecompressor().stream_reader(chunk)
+    return io.BytesIO(chunk) if e["codec"] in ("raw", "delta8") else zstandard.ZstdDecompressor().stream_reader(chunk)
 
 
 def _pieces(blob, e: dict, where: str, piece: int):
-    """An array's pieces of `piece` entries, decompressed one at a time."""
+    """An array's pieces of `piece` entries, decompressed (and, in delta8, rebuilt from its
+    planes) one at a time."""
     dtype = np.dtype(DTYPES[e["dtype"]])
     total = 0
     try:
         with _stream(blob, e) as reader:
-            while total < e["raw"]:
-                data = reader.read(min(piece * dtype.itemsize, e["raw"] - total))
-                if not data or len(data) % dtype.itemsize:
-                    break
-                total += len(data)
-                yield np.frombuffer(data, dtype=dtype)
+            if e["codec"] in PLANED:
+                count = e["raw"] // 8
+
+                def read(n: int) -> bytes:
+                    nonlocal total
+                    data = reader.read(n)
+                    total += len(data)
+                    return data
+
+                yield from rechunk(decode_blocks(read, count), piece)
+            else:
+                while total < e["raw"]:
+                    data = reader.read(min(piece * dtype.itemsize, e["raw"] - total))
+                    if not data or len(data) % dtype.itemsize:
+                        break
+                    total += len(data)
+                    yield np.frombuffer(data, dtype=dtype)
             if total == e["raw"] and reader.read(1):
                 raise FormatError(f"{where}: array '{e['name']}' decompresses to more than its declared {e['raw']} bytes")
     except zstandard.ZstdError as err:
@@ -276,8 +317,10 @@ def _entry(entry, where: str, payload_start: int, payload_end: int) -> dict:
     e["lo"] = payload_start + e["offset"]
     if e["offset"] < 0 or e["stored"] < 0 or e["lo"] + e["stored"] > payload_end:
         raise FormatError(f"{where}: array '{name}' lies beyond the end of the file")
-    if e["codec"] == "raw" and e["stored"] != raw:
+    if e["codec"] in ("raw", "delta8") and e["stored"] != raw:
         raise FormatError(f"{where}: array '{name}' is stored raw in {e['stored']} bytes, declared {raw}")
+    if e["codec"] in PLANED and (e["dtype"] != "int64" or len(shape) != 1):
+        raise FormatError(f"{where}: array '{name}' in codec {e['codec']} must be one-dimensional int64")
     return e
 
 
@@ -293,7 +336,7 @@ MAX_RATIO = 64  # beyond these: more than a real map's arrays expand (measured a
 
 
 def _check_expansion(e: dict, leaves: int | None, where: str) -> None:
-    if e["codec"] == "raw" or e["raw"] <= SMALL_ARRAY or e["raw"] <= MAX_RATIO * e["stored"]:
+    if e["codec"] in ("raw", "delta8") or e["raw"] <= SMALL_ARRAY or e["raw"] <= MAX_RATIO * e["stored"]:
         return
     if leaves is not None and e["raw"] <= PER_LEAF_BYTES * max(leaves, 1):
         return
