@@ -22,27 +22,33 @@ class PlanesEncoder:
         self.count = 0
 
     def encode(self, values: np.ndarray) -> bytes:
-        self.pending.append(np.array(values, dtype=np.int64))  # a copy: a writer may reuse its piece's buffer
-        self.count += values.shape[0]
-        if self.count < BLOCK:
-            return b""
-        joined = np.concatenate(self.pending)
-        whole = (joined.shape[0] // BLOCK) * BLOCK
-        rest = joined[whole:]
-        self.pending, self.count = [rest] if rest.shape[0] else [], rest.shape[0]
-        return b"".join(self._block(joined[k:k + BLOCK]) for k in range(0, whole, BLOCK))
+        values = np.ascontiguousarray(values, dtype=np.int64)
+        out = []
+        if self.count:  # the block begun by earlier pieces first
+            head, values = values[: BLOCK - self.count], values[BLOCK - self.count:]
+            self.pending.append(head.copy())  # a copy: a writer may reuse its piece's buffer
+            self.count += head.shape[0]
+            if self.count == BLOCK:
+                out.append(self._block(np.concatenate(self.pending)))
+                self.pending, self.count = [], 0
+        whole = (values.shape[0] // BLOCK) * BLOCK
+        out += [self._block(values[k:k + BLOCK]) for k in range(0, whole, BLOCK)]
+        if whole < values.shape[0]:
+            self.pending.append(values[whole:].copy())
+            self.count = values.shape[0] - whole
+        return b"".join(out)
 
     def finish(self) -> bytes:
-        out = self._block(np.concatenate(self.pending)) if self.count else b""
+        out = self._block(np.concatenate(self.pending)).tobytes() if self.count else b""
         self.pending, self.count = [], 0
         return out
 
-    def _block(self, values: np.ndarray) -> bytes:
+    def _block(self, values: np.ndarray) -> np.ndarray:
         from voxtool.kernels.planes import to_planes
 
         out = np.empty(8 * values.shape[0], dtype=np.uint8)
         self.previous = to_planes(values, self.previous, out)
-        return out.tobytes()
+        return out
 
 
 def encode_planes(values: np.ndarray) -> bytes:
