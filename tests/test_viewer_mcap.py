@@ -186,8 +186,13 @@ def test_map_mcap_is_stamped_with_the_last_scan(tmp_path):
 
 
 def test_sharded_map_mcap_equals_the_single_maps(tmp_path):
-    """A sharded map's .mcap (its parts' stored leaves joined, stamped with the build's last scan)
-    is the same file as the single snapshot's of the same scans."""
+    """A sharded map's .mcap is written part by part (memory: a part): the same Octomap and
+    OccupancyGrid as the single snapshot's of the same scans, stamped with the build's last scan,
+    and a SceneUpdate per part whose cubes together cover exactly the single map's occupied voxels."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from voxtool.io.sharded import read_manifest
     from voxtool.synthetic import Lidar, street, write_pcd_scans
 
     scans = tmp_path / "scans"
@@ -197,6 +202,35 @@ def test_sharded_map_mcap_equals_the_single_maps(tmp_path):
     code, _, err = cli("build", *common, "-o", tmp_path / "parts", "--sharded", "--workers", "2")
     assert code == 0, err
     for name in ("one.vxm", "parts"):
-        assert cli("export", tmp_path / name, "-o", tmp_path / f"{name}.mcap")[0] == 0
-    assert (tmp_path / "parts.mcap").read_bytes() == (tmp_path / "one.vxm.mcap").read_bytes()
-    assert [v[1] for v in read_ros2(tmp_path / "parts.mcap").values()] == [300_000_000] * 3
+        code, _, err = cli("export", tmp_path / name, "-o", tmp_path / f"{name}.mcap", "--z-range", "-1,3")
+        assert code == 0, err
+
+    def messages(path):
+        with open(path, "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory()], validate_crcs=True)
+            return [(d.channel.topic, d.message.log_time, d.decoded_message) for d in reader.iter_decoded_messages()]
+
+    one, parts = messages(tmp_path / "one.vxm.mcap"), messages(tmp_path / "parts.mcap")
+    assert {t for t, _, _ in parts} == {t for t, _, _ in one} and {s for _, s, _ in parts} == {300_000_000}
+    by_topic = {t: [m for topic, _, m in parts if topic == t] for t in ("/octomap_binary", "/projected_map",
+                                                                        "/voxtool/map")}
+    single = {t: m for t, _, m in one}
+    assert bytes(np.asarray(by_topic["/octomap_binary"][0].data, np.int8)) == bytes(
+        np.asarray(single["/octomap_binary"].data, np.int8))
+    g1, g2 = single["/projected_map"], by_topic["/projected_map"][0]
+    assert (g1.info.width, g1.info.height, list(g1.data)) == (g2.info.width, g2.info.height, list(g2.data))
+    assert len(by_topic["/voxtool/map"]) == len(read_manifest(tmp_path / "parts")["parts"]) > 1
+
+    def voxels(updates, res=0.4):
+        out = []
+        for update in updates:
+            for entity in update.entities:
+                for c in entity.cubes:
+                    n = int(round(c.size.x / res))
+                    lo = np.array([c.pose.position.x, c.pose.position.y, c.pose.position.z]) - c.size.x / 2
+                    grid = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
+                    out.append(np.round(lo / res).astype(np.int64) + grid)
+        v = np.concatenate(out)
+        return v[np.lexsort(v.T)]
+
+    assert np.array_equal(voxels(by_topic["/voxtool/map"]), voxels([single["/voxtool/map"]]))

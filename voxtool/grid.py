@@ -52,31 +52,48 @@ def parse_z_range(text: str | None) -> tuple[float, float] | None:
 def project(leaves: Leaves, resolution: float, threshold_log: float,
             z_range: tuple[float, float] | None = None) -> Grid2D:
     """The 2D grid of the voxels whose centres lie in z_range (inclusive; None: all)."""
+    return project_sets(lambda: [(leaves, threshold_log)], resolution, z_range)
+
+
+def _in_range(leaves: Leaves, resolution: float, z_range):
+    """(keys, edges, values) of the leaves whose voxels reach into z_range."""
     keys = morton_decode(leaves.codes).astype(np.int64)
     edge = leaf_edge(leaves.depths)
-    if z_range is not None:
-        z_lo, z_hi = (int(k) for k in centre_key_range(z_range[0], z_range[1], resolution))  # --crop's rule
-        inside = (keys[:, 2] <= z_hi) & (keys[:, 2] + edge - 1 >= z_lo)
-        keys, edge, values = keys[inside], edge[inside], leaves.values[inside]
-    else:
-        values = leaves.values
-    if keys.shape[0] == 0:
+    if z_range is None:
+        return keys, edge, leaves.values
+    z_lo, z_hi = (int(k) for k in centre_key_range(z_range[0], z_range[1], resolution))  # --crop's rule
+    inside = (keys[:, 2] <= z_hi) & (keys[:, 2] + edge - 1 >= z_lo)
+    return keys[inside], edge[inside], leaves.values[inside]
+
+
+def project_sets(leaf_sets, resolution: float, z_range: tuple[float, float] | None = None) -> Grid2D:
+    """project() of a map given as `leaf_sets()`: a fresh iterator of (leaves, threshold
+    log-odds) each call (a sharded map's parts), read twice: for the grid's extent, then to paint;
+    memory is bounded by a set and the grid."""
+    lo = hi = None
+    for leaves, _ in leaf_sets():
+        keys, edge, _ = _in_range(leaves, resolution, z_range)
+        if keys.shape[0]:
+            a, b = keys[:, :2].min(axis=0), (keys[:, :2] + edge[:, None]).max(axis=0)
+            lo, hi = (a, b) if lo is None else (np.minimum(lo, a), np.maximum(hi, b))
+    if lo is None:
         raise ParameterError("no voxel of the map lies in the --z-range" if z_range else "the map holds no voxel")
-    x0, y0 = int(keys[:, 0].min()), int(keys[:, 1].min())
-    width = int((keys[:, 0] + edge).max()) - x0
-    height = int((keys[:, 1] + edge).max()) - y0
+    x0, y0 = int(lo[0]), int(lo[1])
+    width, height = int(hi[0]) - x0, int(hi[1]) - y0
     if width * height > 1 << 31:
         raise ParameterError(f"the grid would have {width} x {height} cells; give a --z-range or --crop")
     paint = np.zeros(width * height, dtype=np.uint8)  # 0 unknown, 1 free, 2 occupied: the highest wins
-    occupied = values > np.float32(threshold_log)
-    for state, chosen in ((1, ~occupied), (2, occupied)):  # occupied painted last: it wins a cell
-        for e in np.unique(edge[chosen]).tolist():
-            m = chosen & (edge == e)
-            base = (keys[m, 1] - y0) * width + (keys[m, 0] - x0)
-            square = (np.arange(e)[:, None] * width + np.arange(e)[None, :]).ravel()
-            step = max(1, _PAINT_CELLS // square.size)
-            for i in range(0, base.shape[0], step):
-                paint[(base[i:i + step, None] + square[None, :]).ravel()] = state
+    for state in (1, 2):  # occupied painted last, over every set's free cells: it wins a cell
+        for leaves, threshold_log in leaf_sets():
+            keys, edge, values = _in_range(leaves, resolution, z_range)
+            chosen = (values > np.float32(threshold_log)) == (state == 2)
+            for e in np.unique(edge[chosen]).tolist():
+                m = chosen & (edge == e)
+                base = (keys[m, 1] - y0) * width + (keys[m, 0] - x0)
+                square = (np.arange(e)[:, None] * width + np.arange(e)[None, :]).ravel()
+                step = max(1, _PAINT_CELLS // square.size)
+                for i in range(0, base.shape[0], step):
+                    paint[(base[i:i + step, None] + square[None, :]).ravel()] = state
     cells = np.array([UNKNOWN, FREE, OCCUPIED], dtype=np.int8)[paint].reshape(height, width)
     origin = ((x0 - TREE_MAX_VAL) * resolution, (y0 - TREE_MAX_VAL) * resolution)
     return Grid2D(cells, resolution, origin, z_range)

@@ -14,33 +14,37 @@ BLOCK = 1 << 20  # values per block: 8 MiB of planes
 
 
 class PlanesEncoder:
-    """Pieces of an int64 array in, whole blocks of planes out (the last block at finish())."""
+    """Pieces of an int64 array in, whole blocks of planes out (the last block at finish()). A
+    block that pieces fill is gathered in one buffer; whole blocks inside a piece are encoded
+    from it directly (the writer's pieces may be reused after the call: nothing else is kept)."""
 
     def __init__(self) -> None:
         self.previous = np.int64(0)
-        self.pending: list[np.ndarray] = []
+        self.buffer = np.empty(BLOCK, dtype=np.int64)
         self.count = 0
 
     def encode(self, values: np.ndarray) -> bytes:
         values = np.ascontiguousarray(values, dtype=np.int64)
         out = []
         if self.count:  # the block begun by earlier pieces first
-            head, values = values[: BLOCK - self.count], values[BLOCK - self.count:]
-            self.pending.append(head.copy())  # a copy: a writer may reuse its piece's buffer
+            head = values[: BLOCK - self.count]
+            self.buffer[self.count:self.count + head.shape[0]] = head
             self.count += head.shape[0]
+            values = values[head.shape[0]:]
             if self.count == BLOCK:
-                out.append(self._block(np.concatenate(self.pending)))
-                self.pending, self.count = [], 0
+                out.append(self._block(self.buffer))
+                self.count = 0
         whole = (values.shape[0] // BLOCK) * BLOCK
         out += [self._block(values[k:k + BLOCK]) for k in range(0, whole, BLOCK)]
-        if whole < values.shape[0]:
-            self.pending.append(values[whole:].copy())
-            self.count = values.shape[0] - whole
+        rest = values.shape[0] - whole
+        if rest:
+            self.buffer[:rest] = values[whole:]
+            self.count = rest
         return b"".join(out)
 
     def finish(self) -> bytes:
-        out = self._block(np.concatenate(self.pending)).tobytes() if self.count else b""
-        self.pending, self.count = [], 0
+        out = self._block(self.buffer[: self.count]).tobytes() if self.count else b""
+        self.count = 0
         return out
 
     def _block(self, values: np.ndarray) -> np.ndarray:

@@ -92,9 +92,14 @@ def scene_update(leaves: Leaves, resolution: float, threshold_log: float, includ
 def octomap_message(leaves: Leaves, resolution: float, threshold_log: float, stamp_ns: int = 0, frame: str = FRAME):
     """The octomap_msgs/Octomap of the map (OctoMap's binary tree stream as data)."""
     from voxtool.io.bt import tree_stream
+
+    return octomap_of_stream(tree_stream(leaves, threshold_log)[0], resolution, stamp_ns, frame)
+
+
+def octomap_of_stream(body: bytes, resolution: float, stamp_ns: int = 0, frame: str = FRAME):
+    """An octomap_msgs/Octomap holding OctoMap's binary tree stream `body`."""
     from voxtool.io.ros2 import msg, stamp
 
-    body = tree_stream(leaves, threshold_log)[0]
     header = msg("std_msgs/msg/Header")(stamp=stamp(stamp_ns), frame_id=frame)
     return msg("octomap_msgs/msg/Octomap")(header=header, binary=True, id="OcTree", resolution=float(resolution),
                                             data=np.frombuffer(body, dtype=np.int8))
