@@ -5,6 +5,9 @@ column, `inf_range` here) 8 m as in the paper's rows a-c, or unlimited.
 
     python benchmarks/bench_hashmap.py [--data ../shared/data] [--out bench-results/hashmap.json] [--repeat 3]
 
+Last, row a runs as whole `voxtool build` commands idle and beside one busy process, with the
+default threads and with --threads 1 (under_load): the default must not be the slower.
+
 --repeat N runs the scan-by-scan measurement N times per row and prints the median of the N
 medians with their range: on a shared VM a single run can land in a slow minute. Each row also
 times two fixed reference workloads (compute, memory latency; see reference()) just before its
@@ -129,6 +132,39 @@ def relayed(src: Path, share: Path) -> dict:
             "relayed_holds": round(np.intersect1d(a, b).size / max(a.size, 1), 6)}
 
 
+def under_load(src: Path, tmp: str) -> list[dict]:
+    """Row a (n_lim 50,000, inflation range 8 m) as whole `voxtool build` commands, idle and
+    beside one busy process (a Python busy loop, as another node on the robot's cores would be),
+    with the default threads and with --threads 1; `GOMP_SPINCOUNT=300000` is OpenMP's own idle
+    spin, voxtool's default before it chose a short one (voxtool.parallel)."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    def build(threads: int, env: dict) -> dict:
+        out = subprocess.run([sys.executable, "-m", "voxtool.cli", "build", str(src), "--backend", "hashmap",
+                              "--resolution", "0.1", "--param", "n_lim=50000", "--param", "d_inf=0.2", "--param",
+                              "inf_range=8", "--threads", str(threads), "-o", str(Path(tmp) / "load.vxm"), "--json",
+                              "--no-progress"], capture_output=True, text=True, env={**os.environ, **env}, check=True)
+        t = json.loads(out.stdout)["per_scan_t_tot_ms"]
+        return {"median_ms": t["median"], "p95_ms": t["p95"]}
+
+    cases = [("default", 0, {}), ("--threads 1", 1, {}), ("default, OpenMP's spin", 0, {"GOMP_SPINCOUNT": "300000"})]
+    rows = []
+    for load in (False, True):
+        busy = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if load else None
+        try:
+            time.sleep(0.3 if load else 0)
+            for name, threads, env in cases:
+                runs = sorted((build(threads, env) for _ in range(3)), key=lambda r: r["median_ms"])
+                rows.append({"load": "one busy process" if load else "idle", "threads": name, **runs[1]})
+        finally:
+            if busy is not None:
+                busy.kill()
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -165,6 +201,12 @@ def main() -> None:
                   f"{row['reference']['memory_ns']:>6.1f}{spread}")
     print("ref ms / ns: fixed reference workloads (compute; memory latency over 16 MB) timed before the row's "
           "scan-by-scan runs: lower = the machine ran faster")
+    with tempfile.TemporaryDirectory() as tmp:
+        loaded = under_load(src, tmp)
+    print(f"\nrow a as whole commands (median of 3 runs): {'load':<17} {'threads':<23} {'median ms':>9} {'p95 ms':>7}")
+    for r in loaded:
+        print(f"{'':44}{r['load']:<17} {r['threads']:<23} {r['median_ms']:>9.2f} {r['p95_ms']:>7.2f}")
+    rows.append({"under_load": loaded})
     if "relayed_holds" in rows[-1]:
         r = rows[-1]
         print(f"relayed map holds {r['relayed_holds']:.2%} of the sender's {r['sender_occupied']} occupied voxels")

@@ -13,6 +13,16 @@ from voxtool.errors import ParameterError
 
 MAX_THREADS = 1024
 
+# The hash map casts each scan in an OpenMP parallel region (numba's omp layer). Between scans
+# OpenMP's idle worker spins, 300,000 rounds by default: with another process busy on the same
+# cores it takes that process's core and every scan waits for the preempted thread (quick_shack,
+# one busy process beside it on 2 cores: median 7.4 ms, p95 23.4 ms a scan, worse than one thread's
+# 3.8 / 5.4). A short spin gives the core back: 3.5 / 4.7 ms under that load, and 2.39-2.52 ms idle
+# against 2.29-2.46 (docs/design/backends.md). Set before libgomp starts (at numba's first
+# parallel region); a user's own OMP_WAIT_POLICY or GOMP_SPINCOUNT wins.
+if "OMP_WAIT_POLICY" not in os.environ:
+    os.environ.setdefault("GOMP_SPINCOUNT", "1000")
+
 
 def usable_cores() -> int:
     """Cores this process may run on (its affinity mask where the OS has one)."""
