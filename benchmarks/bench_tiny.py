@@ -60,8 +60,10 @@ def main() -> None:
                "only_octree": int(np.setdiff1d(o_occ, t_occ).size), "only_tiny": int(np.setdiff1d(t_occ, o_occ).size),
                "known_voxels_equal": bool(np.array_equal(o_all, t_all)),
                "octree_nodes": leaves_o + inner_o, "tiny_nodes": 1 + 8 * (ps["pool_blocks_used"] - 1),
-               "octree_bytes_used": octree.pool.used_slots() * 9, "tiny_bytes_used": ps["pool_blocks_used"] * 8 * ps["bytes_per_node"],
-               "tiny_bytes_per_node": ps["bytes_per_node"], "octree_bytes_per_node": 9,
+               "octree_bytes_used": octree.used_bytes(),
+               "tiny_bytes_used": ps["pool_blocks_used"] * 8 * ps["bytes_per_node"],
+               "tiny_bytes_per_node": ps["bytes_per_node"],
+               "octree_bytes_per_node": round(octree.used_bytes() / max(leaves_o + inner_o, 1), 2),
                "tiny_dropped": ps["dropped_updates"], "tiny_outside": ps["outside_map_updates"],
                "octree_s": rep_o.time_total, "tiny_s": rep_t.time_total}
         if args.octomap:
