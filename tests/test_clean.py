@@ -245,3 +245,30 @@ def test_clean_on_the_shared_urban_drive_removes_little(shared_data, tmp_path):
     assert code == 0, err
     result = json.loads(out)
     assert 0 < result["points_removed"] < 0.02 * result["points_in"], result
+
+
+def test_movers_ray_traced_into_real_returns():
+    """insert_movers keeps every ray and stops it at a box lying in front of its return (the
+    dynamic truth); a return in front of the box, or a ray beside it, is unchanged. traffic()
+    stands its boxes on the ground and moves them as it says."""
+    from voxtool.synthetic import Box, insert_movers, traffic
+
+    origin = np.array([0.0, 0.0, 1.5])
+    points = np.array([[10.0, 0.0, 1.5],   # straight through the box at x 4..6: stops at x = 4
+                       [3.0, 0.0, 1.5],    # its return lies in front of the box
+                       [10.0, 5.0, 1.5],   # passes beside it
+                       [10.0, 0.0, 0.0]], dtype=np.float32)  # slopes under the box's bottom at 1.0?
+    box = Box((4.0, -1.0, 1.0), (6.0, 1.0, 2.0), (1.0, 0.0, 0.0))
+    out, dynamic = insert_movers(points, origin, 0.0, [box])
+    assert dynamic.tolist() == [True, False, False, False]
+    assert np.allclose(out[0], [4.0, 0.0, 1.5]) and np.array_equal(out[1:], points[1:])
+    out, dynamic = insert_movers(points, origin, 2.0, [box])  # the box has moved to x 6..8
+    assert dynamic.tolist() == [True, False, False, False] and np.allclose(out[0], [6.0, 0.0, 1.5])
+    # a straight drive along +y at 5 m/s: boxes on the ground, the cars moving along y
+    times = np.arange(20) * 0.1
+    origins = np.stack([np.zeros(20), 5.0 * times, np.full(20, 1.8)], axis=1)
+    boxes = traffic(origins, times, ground_z=-0.2)
+    assert len(boxes) == 6 and all(b.lo[2] == -0.2 for b in boxes)
+    oncoming, overtaking = boxes[0], boxes[1]
+    assert oncoming.velocity[:2] == pytest.approx((0.0, -10.0)) and overtaking.velocity[:2] == pytest.approx((0.0, 11.0))
+    assert oncoming.hi[1] - oncoming.lo[1] == pytest.approx(4.5)  # a car's length along the road

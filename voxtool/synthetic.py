@@ -82,24 +82,49 @@ def first_hits(origin: np.ndarray, dirs: np.ndarray, boxes: list[Box], t: float,
     z = 0) and whether that surface is a moving box (slab test, all rays x all boxes at once)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         ground = np.where(dirs[:, 2] < 0, -origin[2] / dirs[:, 2], np.inf)
-        best = np.where(ground <= max_range, ground, np.inf)
-        moving = np.zeros(dirs.shape[0], dtype=bool)
-        if boxes:
-            shift = np.array([b.velocity for b in boxes]) * t
-            lo = np.array([b.lo for b in boxes]) + shift
-            hi = np.array([b.hi for b in boxes]) + shift
-            inv = 1.0 / dirs  # (N, 3); inf along an axis the ray does not move in
-            t1 = (lo[None, :, :] - origin) * inv[:, None, :]
-            t2 = (hi[None, :, :] - origin) * inv[:, None, :]
-            near = np.nanmax(np.minimum(t1, t2), axis=2)
-            far = np.nanmin(np.maximum(t1, t2), axis=2)
-            entry = np.where((near <= far) & (far > 0) & (near > 0), near, np.inf)
-            which = np.argmin(entry, axis=1)
-            first = entry[np.arange(dirs.shape[0]), which]
-            closer = (first < best) & (first <= max_range)
-            best = np.where(closer, first, best)
-            moving = closer & np.array([b.moving for b in boxes])[which]
+    best = np.where(ground <= max_range, ground, np.inf)
+    moving = np.zeros(dirs.shape[0], dtype=bool)
+    if boxes:
+        first, which = box_entries(origin, dirs, boxes, t)
+        closer = (first < best) & (first <= max_range)
+        best = np.where(closer, first, best)
+        moving = closer & np.array([b.moving for b in boxes])[which]
     return best, moving
+
+
+def box_entries(origin: np.ndarray, dirs: np.ndarray, boxes: list[Box], t: float) -> tuple[np.ndarray, np.ndarray]:
+    """(distance along each unit ray to where it first enters one of the boxes at time t, inf
+    where none; which box), by the slab test, every ray against every box at once. A ray that
+    starts inside a box does not enter it."""
+    shift = np.array([b.velocity for b in boxes]) * t
+    lo = np.array([b.lo for b in boxes]) + shift
+    hi = np.array([b.hi for b in boxes]) + shift
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / dirs  # (N, 3); inf along an axis the ray does not move in
+        t1 = (lo[None, :, :] - origin) * inv[:, None, :]
+        t2 = (hi[None, :, :] - origin) * inv[:, None, :]
+        near = np.nanmax(np.minimum(t1, t2), axis=2)
+        far = np.nanmin(np.maximum(t1, t2), axis=2)
+    entry = np.where((near <= far) & (far > 0) & (near > 0), near, np.inf)
+    which = np.argmin(entry, axis=1)
+    return entry[np.arange(dirs.shape[0]), which], which
+
+
+def insert_movers(points: np.ndarray, origin: np.ndarray, t: float, boxes: list[Box]) -> tuple[np.ndarray, np.ndarray]:
+    """A real scan with moving boxes ray-traced into it: every ray (origin -> its real return)
+    is kept, and where a box at time t lies in front of the return the ray stops at the box's
+    surface. Returns (the points, float32; which of them lie on a box: the dynamic truth)."""
+    o = np.asarray(origin, dtype=np.float64)
+    v = np.asarray(points, dtype=np.float64) - o
+    length = np.linalg.norm(v, axis=1)
+    dirs = v / np.where(length > 0, length, 1.0)[:, None]
+    if not boxes or points.shape[0] == 0:
+        return np.asarray(points, dtype=np.float32), np.zeros(points.shape[0], dtype=bool)
+    entry, _ = box_entries(o, dirs, boxes, t)
+    hit = entry < length
+    out = np.asarray(points, dtype=np.float64).copy()
+    out[hit] = o + dirs[hit] * entry[hit, None]
+    return out.astype(np.float32), hit
 
 
 def street(n_scans: int = 30, seed: int = 0, lidar: Lidar | None = None) -> Scene:
@@ -144,3 +169,58 @@ def write_pcd_scans(scene: Scene, directory: str | Path) -> np.ndarray:
                      f"0 0 {np.sin(yaw / 2):.12f} {np.cos(yaw / 2):.12f}\n")
     (directory / "poses.txt").write_text("".join(poses))
     return np.concatenate(labels)
+
+
+def ground_height(points: np.ndarray, origin: np.ndarray) -> float:
+    """The ground's height under a real scan: the most common height (0.1 m bins) of the points
+    3-25 m from the sensor horizontally and at least 0.3 m below it."""
+    d = np.linalg.norm(points[:, :2] - origin[:2], axis=1)
+    z = points[(d > 3.0) & (d < 25.0) & (points[:, 2] < origin[2] - 0.3), 2]
+    if z.size < 50:
+        return float(origin[2]) - 1.8
+    counts, edges = np.histogram(z, bins=np.arange(z.min(), z.max() + 0.2, 0.1))
+    return float(edges[int(np.argmax(counts))])
+
+
+# (what, along, side, length, width, height, speed along the travel, speed across, the speed along
+# is the sensor's plus this): where each is when the sensor is half way through the scans, in
+# metres from it (along its travel, to its left), and how it moves (m/s)
+TRAFFIC = [
+    ("car, oncoming", 14.0, 3.0, 4.5, 1.8, 1.5, -10.0, 0.0, False),
+    ("car, overtaking", -3.0, -3.2, 4.5, 1.8, 1.5, 6.0, 0.0, True),
+    ("cyclist", 7.0, -5.0, 1.8, 0.6, 1.7, 4.0, 0.0, False),
+    ("pedestrian, crossing", 10.0, -6.0, 0.5, 0.5, 1.75, 0.0, 1.3, False),
+    ("pedestrian, crossing", 16.0, 6.5, 0.5, 0.5, 1.7, 0.0, -1.2, False),
+    ("pedestrian, walking", 5.0, 5.5, 0.5, 0.5, 1.8, -1.2, 0.0, False),
+]
+
+
+def traffic(origins: np.ndarray, times: np.ndarray, ground_z: float) -> list[Box]:
+    """Moving boxes for a real sequence (sensor origins and scan times in seconds): two cars (one
+    oncoming at 10 m/s, one overtaking the sensor by 6 m/s), a cyclist and pedestrians at
+    realistic sizes and speeds, standing on the ground, placed (TRAFFIC) around where the sensor
+    is half way through, along its direction of travel (the x axis for a sensor that stays put).
+    A box that would hold the sensor at some scan is left out."""
+    origins = np.asarray(origins, dtype=np.float64)
+    travel = origins[-1, :2] - origins[0, :2]
+    span = float(times[-1] - times[0]) if len(times) > 1 else 0.0
+    moved = float(np.linalg.norm(travel))
+    heading = travel / moved if moved > 1.0 else np.array([1.0, 0.0])
+    left = np.array([-heading[1], heading[0]])
+    speed = moved / span if span > 0 and moved > 1.0 else 0.0
+    mid = len(origins) // 2
+    centre, t_mid = origins[mid, :2], float(times[mid] - times[0])
+    boxes = []
+    for _, along, side, length, width, height, v_along, v_side, relative in TRAFFIC:
+        position = centre + along * heading + side * left
+        velocity = (v_along + (speed if relative else 0.0)) * heading + v_side * left
+        extent = np.array([length, width]) if abs(heading[0]) >= abs(heading[1]) else np.array([width, length])
+        if v_side and not v_along:  # crossing: its length lies across the travel
+            extent = extent[::-1]
+        lo = np.array([*(position - extent / 2 - velocity * t_mid), ground_z])
+        hi = np.array([*(position + extent / 2 - velocity * t_mid), ground_z + height])
+        box = Box(tuple(lo), tuple(hi), (float(velocity[0]), float(velocity[1]), 0.0))
+        shifts = np.outer(np.asarray(times, dtype=np.float64) - times[0], box.velocity)
+        if not np.any(np.all((origins >= lo + shifts) & (origins <= hi + shifts), axis=1)):
+            boxes.append(box)
+    return boxes
