@@ -94,7 +94,7 @@ def test_pruned_tree_counts_equal_the_pruned_trees_node_counts():
     from voxtool.maps.tree import max_likelihood
 
     rng = np.random.default_rng(7)
-    for _ in range(30):
+    for _ in range(20):
         leaves = random_tree(rng)
         got = pruned_tree_counts(leaves.codes, leaves.depths, leaves.values, np.float32(0.0), False)
         assert tuple(int(n) for n in got) == node_counts(collapse(leaves))
