@@ -209,6 +209,32 @@ def test_clean_writes_the_static_points_and_the_labels(tmp_path):
     np.testing.assert_array_equal(ply, cloud)
 
 
+def test_clean_shows_what_it_removed(tmp_path):
+    """--dynamic writes exactly the removed points; --png draws them (red) over the kept ones,
+    from above or the side."""
+    o3d = pytest.importorskip("open3d")
+    from matplotlib.image import imread
+
+    truth = write_pcd_scans(one_moving_box(10), tmp_path / "scans")
+    code, out, err = cli("clean", tmp_path / "scans", "--dynamic", tmp_path / "removed.ply", "--png",
+                         tmp_path / "top.png", "--json", "--no-progress")
+    assert code == 0, err
+    result = json.loads(out)
+    world = np.concatenate([s.points for s in open_source(tmp_path / "scans").scans])
+    removed = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "removed.ply")).points)
+    np.testing.assert_allclose(removed, world[truth], rtol=0, atol=0)
+    assert result["written"] == [str(tmp_path / "removed.ply"), str(tmp_path / "top.png")]
+    assert imread(tmp_path / "top.png").shape[:2] == (result["png"]["height"], result["png"]["width"])
+    code, out, err = cli("clean", tmp_path / "scans", "--png", tmp_path / "side.png", "--view", "side", "--no-progress")
+    assert code == 0 and (tmp_path / "side.png").is_file(), err
+    from voxtool.plots import clean_figure
+
+    fig = clean_figure(world, truth, "t", view="side")
+    assert (fig.axes[0].get_xlabel(), fig.axes[0].get_ylabel()) == ("y (m)", "z (m)")
+    code, _, err = cli("clean", tmp_path / "scans", "--dynamic", tmp_path / "removed.txt", "--no-progress")
+    assert code == 2 and "--dynamic: the removed points are written as .pcd or .ply" in err
+
+
 @pytest.mark.parametrize("args, exit_code, message", [
     (["-o", "static.txt"], 2, "static.txt: the static map is written as .pcd or .ply"),
     (["--labels", "labels.csv"], 2, "labels.csv: labels are written as .npy"),

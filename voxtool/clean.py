@@ -235,16 +235,23 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     return Cleaned(points, dynamic, starts, figures)
 
 
-def check_outputs(output: str | os.PathLike | None, labels: str | os.PathLike | None) -> None:
+def check_outputs(output: str | os.PathLike | None, labels: str | os.PathLike | None,
+                  dynamic: str | os.PathLike | None = None, png: str | os.PathLike | None = None) -> None:
     """Refuse outputs that cannot be written before any work."""
     from voxtool.atomic import check_writable
 
-    if output is None and labels is None:
-        raise ParameterError("clean writes its result: give -o STATIC.pcd/.ply, --labels LABELS.npy, or both")
-    if output is not None:
-        if Path(output).suffix.lower() not in CLOUD_SUFFIXES:
-            raise ParameterError(f"{output}: the static map is written as .pcd or .ply")
-        check_writable(output)
+    if output is None and labels is None and dynamic is None and png is None:
+        raise ParameterError("clean writes its result: give -o STATIC.pcd/.ply, --labels LABELS.npy, --dynamic "
+                             "REMOVED.pcd/.ply or --png OUT.png")
+    for path, what in ((output, "the static map is"), (dynamic, "--dynamic: the removed points are")):
+        if path is not None:
+            if Path(path).suffix.lower() not in CLOUD_SUFFIXES:
+                raise ParameterError(f"{path}: {what} written as .pcd or .ply")
+            check_writable(path)
+    if png is not None:
+        from voxtool.plots import check_png
+
+        check_png(png, "--png")
     if labels is not None:
         if Path(labels).suffix.lower() != ".npy":
             raise ParameterError(f"{labels}: labels are written as .npy (uint8 per point: 0 static, 1 dynamic)")
@@ -273,11 +280,14 @@ def write_labels(path: str | os.PathLike, dynamic: np.ndarray) -> None:
 
 def clean_source(source: str | os.PathLike, options: SourceOptions, params: CleanParams,
                  output: str | os.PathLike | None = None, labels: str | os.PathLike | None = None,
-                 threads: int = 0, progress: bool | None = None) -> dict[str, Any]:
-    """`voxtool clean`: judge every point of `source`, write the static points and/or the labels."""
+                 threads: int = 0, progress: bool | None = None, dynamic: str | os.PathLike | None = None,
+                 png: str | os.PathLike | None = None, view: str = "top") -> dict[str, Any]:
+    """`voxtool clean`: judge every point of `source`; write the static points (`output`), the
+    labels, the removed points (`dynamic`) and/or a picture of what was removed (`png`: the
+    removed points in red over the kept ones, seen from `view`)."""
     from voxtool.sources import resolve_origin
 
-    check_outputs(output, labels)
+    check_outputs(output, labels, dynamic, png)
     options = resolve_origin(source, options, params.resolution)
     cleaned = clean_stream(open_source(source, options), params, threads, progress)
     t0 = time.perf_counter()
@@ -285,6 +295,13 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
         write_cloud_points(output, cleaned.points[~cleaned.dynamic], options.origin, params.resolution)
     if labels is not None:
         write_labels(labels, cleaned.dynamic)
+    if dynamic is not None:
+        write_cloud_points(dynamic, cleaned.points[cleaned.dynamic], options.origin, params.resolution)
+    if png is not None:
+        from voxtool.plots import clean_figure, write_plot
+
+        cleaned.figures["png"] = write_plot(clean_figure(cleaned.points, cleaned.dynamic,
+                                                         f"voxtool clean {Path(source).name}", None, view), png)
     figures = cleaned.figures
     figures["timings_s"]["write"] = round(time.perf_counter() - t0, 6)
     figures["source"] = str(source)

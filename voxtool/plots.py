@@ -152,12 +152,19 @@ def write_plot(fig, path: str | Path) -> dict:
     return {"plot": str(path), "width": width, "height": height}
 
 
-def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: float | None = None):
-    """`clean` before and after, seen from above: every point by height with the removed ones in
-    red, then the static points alone (same axes). `extent_m`: a square of that side around the
-    points' median (a long drive is otherwise too small to judge)."""
+CLEAN_VIEWS = {"top": (0, 1, 2), "front": (0, 2, 1), "side": (1, 2, 0)}  # (horizontal, vertical, colour) axes
+
+
+def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: float | None = None,
+                 view: str = "top"):
+    """`clean` before and after, seen from above (or, as export's pictures, from the front or
+    the side): every point by height (depth for front/side) with the removed ones in red, then
+    the static points alone (same axes). `extent_m`: a square of that side around the points'
+    median (a long drive is otherwise too small to judge)."""
     from voxtool.io.picture import height_colours
 
+    u, w, c = CLEAN_VIEWS[view]
+    points = points[:, [u, w, c]]
     fig = _figure(1, 5.2)
     before, after = fig.subplots(1, 2, sharex=True, sharey=True)
     z = points[:, 2]
@@ -168,14 +175,14 @@ def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: 
         ax.scatter(points[mask & static, 0], points[mask & static, 1], s=0.05, c=colours[mask & static],
                    linewidths=0, rasterized=True)
         ax.set_aspect("equal")
-        ax.set_xlabel("x (m)")
+        ax.set_xlabel(f"{'xyz'[u]} (m)")
         ax.set_title(f"{name}: {int((mask & static).sum()):,} static points"
                      + (f", {int(dynamic.sum()):,} removed (red)" if name == "before" else ""), fontsize=9)
     before.scatter(points[dynamic, 0], points[dynamic, 1], s=0.4, c="red", linewidths=0, rasterized=True)
-    before.set_ylabel("y (m)")
+    before.set_ylabel(f"{'xyz'[w]} (m)")
     if extent_m is not None and z.size:
         cx, cy = np.median(points[:, 0]), np.median(points[:, 1])
         before.set_xlim(cx - extent_m / 2, cx + extent_m / 2)
         before.set_ylim(cy - extent_m / 2, cy + extent_m / 2)
-    fig.suptitle(f"{title} (height: {lo:.1f} to {hi:.1f} m, viridis)", fontsize=10)
+    fig.suptitle(f"{title}, {view} view ({'xyz'[c]}: {lo:.1f} to {hi:.1f} m, viridis)", fontsize=10)
     return fig

@@ -26,6 +26,12 @@ from voxtool.cli.common import (
 @click.option("--labels", type=click.Path(path_type=Path), metavar="LABELS.npy",
               help="Write one uint8 per point voxtool read (0 static, 1 dynamic), in scan order; points dropped "
                    "as non-finite or below --min-range have none.")
+@click.option("--dynamic", type=click.Path(path_type=Path), metavar="REMOVED.pcd|.ply",
+              help="Write the removed (dynamic) points here, atomically (in the scans' frame, as -o).")
+@click.option("--png", type=click.Path(path_type=Path), metavar="OUT.png",
+              help="Draw what was removed: every point with the removed ones in red, then the kept ones alone.")
+@click.option("--view", type=click.Choice(["top", "front", "side"]), default="top", show_default=True,
+              help="--png: look from above, from the front (along +y) or the side (along -x).")
 @click.option("--resolution", default=0.1, show_default=True, type=float, help="Voxel edge of the void map, metres.")
 @click.option("--sensor-noise", default=0.2, show_default=True, type=float,
               help="d_s: each ray gives no evidence of empty space over its last d_s metres (range noise).")
@@ -39,7 +45,7 @@ from voxtool.cli.common import (
 @click.option("--json", "as_json", is_flag=True, help="Print figures and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def clean(source, sample, output, labels, resolution, sensor_noise, pose_error, max_range, origin, threads, as_json,
+def clean(source, sample, output, labels, dynamic, png, view, resolution, sensor_noise, pose_error, max_range, origin, threads, as_json,
           progress, **kw):
     """Judge every point of SOURCE static or dynamic and write the static map (-o) and/or the labels.
 
@@ -57,7 +63,7 @@ def clean(source, sample, output, labels, resolution, sensor_noise, pose_error, 
     source = resolve_source(source, sample)
     options = with_origin(source_setup(kw), origin)
     params = CleanParams(resolution=resolution, sensor_noise=sensor_noise, pose_error=pose_error, max_range=max_range)
-    result = clean_source(source, options, params, output, labels, threads, progress)
+    result = clean_source(source, options, params, output, labels, threads, progress, dynamic, png, view)
     t = result["timings_s"]
     removed = result["points_removed"]
     share = removed / max(result["points_in"], 1)
@@ -71,5 +77,5 @@ def clean(source, sample, output, labels, resolution, sensor_noise, pose_error, 
                  f"{t['raycast']:.3f} s, void map {t['void_update']:.3f} s), judging {t['classify']:.3f} s, "
                  f"writing {t['write']:.3f} s"),
     ]
-    written = [p for p in (output, labels) if p is not None]
+    written = [p for p in (output, labels, dynamic, png) if p is not None]
     emit(result, as_json, rows, written=written if len(written) > 1 else written[0])
