@@ -107,9 +107,43 @@ def scene_of(leaf_sets, resolution: float, max_free: int = MAX_FREE_CELLS) -> Sc
     return Scene(resolution, keys, free, max_free)
 
 
-def load_scene(path: str | Path, progress: bool | None = False) -> Scene:
-    """A snapshot (.vxm), an OctoMap .bt or a sharded map (read part by part)."""
+CLOUD_RESOLUTION = 0.1  # m: the voxels a point cloud is shown as, unless the viewer is told
+
+
+def cloud_scene(path: Path, resolution: float | None = None) -> Scene:
+    """A point cloud (.pcd with its VIEWPOINT applied, .ply as it is: `clean`'s outputs, an
+    export's voxel centres) shown as the voxels of `resolution` its points fall in. A cloud far
+    from its frame's origin (a UTM export) is shown about its middle in x and y."""
+    from voxtool.keys import KEY_LIMIT
+
+    resolution = resolution or CLOUD_RESOLUTION
+    if path.suffix.lower() == ".pcd":
+        from voxtool.sources import open_source
+
+        points = np.concatenate([s.points for s in open_source(path).scans]).astype(np.float64)
+    else:
+        from voxtool.sources.ply import read_ply
+
+        points = np.asarray(read_ply(path), dtype=np.float64)
+        points = points[np.isfinite(points).all(axis=1)]
+    if points.shape[0] == 0:
+        raise ParameterError(f"{path}: the cloud holds no point: there is nothing to view")
+    keys = np.floor(points / resolution).astype(np.int64) + TREE_MAX_VAL
+    middle = np.zeros(3, np.int64)
+    middle[:2] = np.round(np.median(keys[:, :2], axis=0)).astype(np.int64) - TREE_MAX_VAL
+    keys -= middle
+    if keys.min() < 0 or keys.max() >= KEY_LIMIT:
+        raise ParameterError(f"{path}: the cloud spans more than {KEY_LIMIT} voxels of {resolution:g} m: "
+                             "view it with a coarser --resolution")
+    return Scene(resolution, np.unique(keys, axis=0), [])
+
+
+def load_scene(path: str | Path, progress: bool | None = False, resolution: float | None = None) -> Scene:
+    """A snapshot (.vxm), an OctoMap .bt, a sharded map (read part by part) or a point cloud
+    (.pcd, .ply: cloud_scene, at `resolution`)."""
     path = Path(path)
+    if path.suffix.lower() in (".pcd", ".ply") and not path.is_dir():
+        return cloud_scene(path, resolution)
     if path.is_dir():
         from voxtool.io import sharded
         from voxtool.progress import track

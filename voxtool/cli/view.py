@@ -17,11 +17,14 @@ from voxtool.cli.common import emit, handle_errors
 @click.option("--screenshot", type=click.Path(path_type=Path), metavar="OUT.png",
               help="Render the view off-screen to a PNG (with a colour bar in metres) and exit: no window.")
 @click.option("--size", default="1280x960", show_default=True, metavar="WxH", help="Rendered size of --screenshot.")
+@click.option("--resolution", type=click.FloatRange(min=0.001), default=None, metavar="M",
+              help="A point cloud (.pcd/.ply) is shown as the voxels its points fall in, this large (default 0.1 m).")
 @click.option("--json", "as_json", is_flag=True, help="With --screenshot: print what was drawn as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (sharded maps).")
 @handle_errors
-def view(map_file, show_free, slice_z, screenshot, size, as_json, progress):
-    """Show a map (.vxm, OctoMap .bt, or a sharded map directory) in a 3D window: occupied voxels
+def view(map_file, show_free, slice_z, screenshot, size, resolution, as_json, progress):
+    """Show a map (.vxm, OctoMap .bt, or a sharded map directory) or a point cloud (.pcd, .ply:
+    `clean`'s outputs, as voxels of --resolution) in a 3D window: occupied voxels
     coloured by height, free space on key F (as coarser cells), a height slice on keys S, [ and ].
     The colour range and the keys are in the window title. A window needs a display; --screenshot
     needs only an OpenGL context (EGL, or xvfb-run)."""
@@ -39,7 +42,7 @@ def view(map_file, show_free, slice_z, screenshot, size, as_json, progress):
         from voxtool.plots import check_png
 
         check_png(screenshot, "--screenshot")
-    scene = load_scene(map_file, progress)
+    scene = load_scene(map_file, progress, resolution)
     layer = layer_of(scene, slice_z)
     if screenshot is None:
         show(scene, map_file.name, show_free, layer)
