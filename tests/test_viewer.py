@@ -128,7 +128,8 @@ def test_ctrl_c_ends_the_view_window(sample_map):
 
 def test_a_point_cloud_is_viewed_as_the_voxels_it_fills(sample_map, tmp_path):
     """`view` opens .ply/.pcd (clean's outputs): the voxel centres a map exports, viewed at the
-    map's resolution, are exactly the map's occupied voxels; a screenshot draws them."""
+    map's resolution, are exactly the map's occupied voxels (drawn as a map's are: the screenshot
+    test above)."""
     from voxtool.viewer import cloud_scene
 
     for suffix in (".ply", ".pcd"):
@@ -137,5 +138,3 @@ def test_a_point_cloud_is_viewed_as_the_voxels_it_fills(sample_map, tmp_path):
         scene, whole = cloud_scene(cloud, 0.2), load_scene(sample_map[0])
         middle = np.round(np.median(whole.occupied[:, :2], axis=0)).astype(np.int64) - 32768  # shown about it
         assert np.array_equal(np.unique(scene.occupied + [*middle, 0], axis=0), np.unique(whole.occupied, axis=0))
-    got = _xvfb_view(tmp_path / "occ.ply", "--resolution", 0.2, "--screenshot", tmp_path / "cloud.png")
-    assert got["occupied_voxels_shown"] == sample_map[1]["occupied_voxels"] and got["rendered_pixels"] > 1000
