@@ -60,6 +60,8 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, quiet:
                                      "for example tcp://10.0.0.5:8786)") from None
             except (OSError, TimeoutError) as err:
                 raise ClusterError(f"{scheduler}: cannot reach the Dask scheduler ({err})") from None
+            except Exception as err:  # any other failure to connect (Dask's event loop): one line, not a traceback
+                raise ClusterError(f"{scheduler}: cannot reach the Dask scheduler ({type(err).__name__}: {err})") from None
         else:
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                    dashboard_address=":0", silence_logs=logging.ERROR)
