@@ -26,6 +26,22 @@ def wanted(workers: int | None, scheduler: str | None) -> bool:
     return workers is not None or scheduler is not None
 
 
+def check_address(scheduler: str) -> None:
+    """Refuse what is not a Dask scheduler address before connecting (Client's own parsing
+    failures vary with the process's Dask state: an AssertionError where a ValueError was)."""
+    from distributed.comm import get_address_host_port, parse_address
+    from distributed.comm.registry import get_backend
+
+    try:
+        scheme, _ = parse_address(scheduler)
+        get_backend(scheme)
+        if scheme in ("tcp", "tls", "ws", "wss"):
+            get_address_host_port(scheduler)
+    except (ValueError, TypeError) as err:
+        raise ParameterError(f"--scheduler {scheduler}: not a Dask scheduler address ({err}; "
+                             "for example tcp://10.0.0.5:8786)") from None
+
+
 def connect_timeout() -> str:
     """How long --scheduler waits for its scheduler to answer: VOXTOOL_CONNECT_TIMEOUT seconds
     (default 10; Dask retries the connection until then)."""
@@ -53,6 +69,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, quiet:
     cluster = None
     try:
         if scheduler is not None:
+            check_address(scheduler)
             try:
                 client = Client(scheduler, timeout=connect_timeout())
             except ValueError as err:  # Dask's own words: "unknown address scheme", "missing port number"
