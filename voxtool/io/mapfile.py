@@ -63,7 +63,7 @@ def stream_leaves(path: str | Path, piece: int = 1 << 22):
     of a chunk. None for another backend's snapshot (its leaves are derived from its state)."""
     from voxtool.io.snapshot import stream_arrays
 
-    header, _ = stream_arrays(path, LEAF_NAMES, piece)  # checks the file (CRCs, sizes) once, here
+    header, pieces = stream_arrays(path, LEAF_NAMES, piece)  # checks the file (CRCs, sizes) once, here
     if header.get("backend") != "octree":
         return None
     try:
@@ -75,7 +75,7 @@ def stream_leaves(path: str | Path, piece: int = 1 << 22):
         from voxtool.keys import leaf_span
 
         end = 0
-        for k, (codes, depths, values) in enumerate(stream_arrays(path, LEAF_NAMES, piece)[1]):
+        for k, (codes, depths, values) in enumerate(pieces()):
             chunk = Leaves(codes, depths, values)
             validate_leaves(chunk, f"{path} (leaves {k * piece:,} on)")
             if codes.shape[0] and int(codes[0]) < end:

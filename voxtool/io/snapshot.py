@@ -45,6 +45,7 @@ class Snapshot:
 
 CODECS = ("zstd", "raw", "zstd-delta8", "delta8")  # delta8: io.delta_planes, then zstd or not
 PLANED = ("zstd-delta8", "delta8")
+UNCOMPRESSED = ("raw", "delta8")  # stored bytes = raw bytes
 DEFAULT_PLANED = ("leaf_codes",)  # arrays a zstd snapshot stores as delta8 planes (sorted int64)
 
 
@@ -222,11 +223,12 @@ def _table(blob, where: str) -> tuple[dict, dict[str, dict]]:
 
 
 def stream_arrays(path: str | Path, names: tuple[str, ...], piece: int = 1 << 22):
-    """(header, pieces): the header of a snapshot file and an iterator of tuples, one piece of
-    each named array (`piece` entries, the last shorter), decompressed as they are asked for, so
-    that memory is bounded by a piece and the file (memory-mapped), not the arrays. The arrays
-    must be one-dimensional and of one length; `leaf_codes`, when named, is checked to rise
-    strictly as parse_snapshot checks it. Every CRC is checked before the first piece."""
+    """(header, pieces): the header of a snapshot file and `pieces()`, a fresh iterator each call
+    of tuples, one piece of each named array (`piece` entries, the last shorter), decompressed as
+    they are asked for, so that memory is bounded by a piece and the file (memory-mapped once),
+    not the arrays. The arrays must be one-dimensional and of one length; `leaf_codes`, when
+    named, is checked to rise strictly as parse_snapshot checks it. Every CRC is checked once,
+    here, before any piece."""
     import mmap
 
     path = Path(path)
@@ -257,14 +259,14 @@ def stream_arrays(path: str | Path, names: tuple[str, ...], piece: int = 1 << 22
                    else _pieces(blob, e, str(path), piece) for e in chosen]
         yield from zip(*readers, strict=True)
 
-    return header, pieces()
+    return header, pieces
 
 
 def _stream(blob, e: dict):
     import io
 
     chunk = memoryview(blob)[e["lo"] : e["lo"] + e["stored"]]
-    return io.BytesIO(chunk) if e["codec"] in ("raw", "delta8") else zstandard.ZstdDecompressor().stream_reader(chunk)
+    return io.BytesIO(chunk) if e["codec"] in UNCOMPRESSED else zstandard.ZstdDecompressor().stream_reader(chunk)
 
 
 def _pieces(blob, e: dict, where: str, piece: int):
@@ -317,7 +319,7 @@ def _entry(entry, where: str, payload_start: int, payload_end: int) -> dict:
     e["lo"] = payload_start + e["offset"]
     if e["offset"] < 0 or e["stored"] < 0 or e["lo"] + e["stored"] > payload_end:
         raise FormatError(f"{where}: array '{name}' lies beyond the end of the file")
-    if e["codec"] in ("raw", "delta8") and e["stored"] != raw:
+    if e["codec"] in UNCOMPRESSED and e["stored"] != raw:
         raise FormatError(f"{where}: array '{name}' is stored raw in {e['stored']} bytes, declared {raw}")
     if e["codec"] in PLANED and (e["dtype"] != "int64" or len(shape) != 1):
         raise FormatError(f"{where}: array '{name}' in codec {e['codec']} must be one-dimensional int64")
@@ -336,7 +338,7 @@ MAX_RATIO = 64  # beyond these: more than a real map's arrays expand (measured a
 
 
 def _check_expansion(e: dict, leaves: int | None, where: str) -> None:
-    if e["codec"] in ("raw", "delta8") or e["raw"] <= SMALL_ARRAY or e["raw"] <= MAX_RATIO * e["stored"]:
+    if e["codec"] in UNCOMPRESSED or e["raw"] <= SMALL_ARRAY or e["raw"] <= MAX_RATIO * e["stored"]:
         return
     if leaves is not None and e["raw"] <= PER_LEAF_BYTES * max(leaves, 1):
         return
