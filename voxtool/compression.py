@@ -33,10 +33,15 @@ EXPANSION_SMALL = 256 << 20
 EXPANSION_RATIO = 64
 
 
+def expansion_limit(stored: int, small: int = EXPANSION_SMALL, ratio: int = EXPANSION_RATIO) -> int:
+    """The most bytes `stored` compressed bytes of real data expand to."""
+    return small + ratio * stored
+
+
 def check_expansion(declared: int, stored: int, what: str, small: int = EXPANSION_SMALL,
                     ratio: int = EXPANSION_RATIO) -> None:
     """Refuse `declared` uncompressed bytes from `stored` compressed ones beyond that bound."""
-    if declared > small + ratio * stored:
+    if declared > expansion_limit(stored, small, ratio):
         raise FormatError(f"{what} declares {declared:,} bytes from {stored:,} compressed: more than real data "
                           "expands to (a corrupt file, or a decompression bomb)")
 

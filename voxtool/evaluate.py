@@ -56,8 +56,8 @@ def _without(stream: ScanStream, held: set) -> ScanStream:
 
 def _count_scans(source, options: SourceOptions) -> int:
     stream = open_source(source, options)
-    if stream.count is not None and options.start == 0 and options.every == 1:
-        return stream.count if options.stop is None else min(stream.count, options.stop)
+    if stream.count is not None:  # the scans the options select (--stop included)
+        return stream.count
     return sum(1 for _ in stream.scans)  # a source that does not say: counted by reading it
 
 

@@ -39,15 +39,13 @@ def eval_cmd(source, sample, holdout_every, holdout, threads, min_correct, png, 
       voxtool eval kaist03.graph --resolution 0.2                  eval_octree_accuracy's figures
       voxtool eval scans/ --holdout 3,7 --json                     chosen scans, per scan in JSON
       voxtool eval scans/ --min-correct 98 --png where.png          a CI gate and a picture"""
-    from voxtool.atomic import check_writable
-    from voxtool.errors import ParameterError
     from voxtool.evaluate import check_min_correct, evaluate
 
     source = resolve_source(source, sample)
     if png is not None:
-        if png.suffix.lower() != ".png":
-            raise ParameterError(f"{png}: --png writes a .png picture")
-        check_writable(png)
+        from voxtool.plots import check_png
+
+        check_png(png, "--png")
     listed = int_list(holdout) if holdout else None
     every = holdout_every if holdout_every is not None or listed else 5
     options, params, sensor = scan_setup(kw)

@@ -305,9 +305,9 @@ def picture_of_parts(path: Path, output: Path, include_free: bool, progress=Fals
     manifest = sharded.read_manifest(path)
     checked = []  # the parts' hashes are checked on the first pass only
 
-    def parts():
-        for _, backend in sharded.iter_parts(path, check_hash=not checked):
-            yield backend.leaves(), backend.sensor.threshold_log
+    def parts():  # each part's stored leaves, without rebuilding its tree
+        for _, leaves, threshold in sharded.iter_part_leaves(path, check_hash=not checked):
+            yield leaves, threshold
         checked.append(True)
 
     return write_leaf_sets(output, parts, manifest["map_params"]["resolution"], include_free, view, slice_z,

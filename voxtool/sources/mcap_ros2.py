@@ -12,7 +12,7 @@ import numpy as np
 
 from voxtool.errors import FormatError, SourceError, mcap_problem
 from voxtool.geometry import Pose
-from voxtool.sources.ros_msgs import SCAN_TYPES, scan_messages
+from voxtool.sources.ros_msgs import scan_messages, scan_topic
 from voxtool.sources.tf import POSE_TYPES, TF, SensorPoses
 
 
@@ -144,21 +144,6 @@ class McapCloudSource:
 
         yield from scan_messages(messages, decode, self._poses, str(self.path), self.topic, self._msgtype,
                                  _decode_errors(), mcap_problem, start, stop, every, on_bad, index)
-
-
-def scan_topic(where: str, topics: dict[str, str], topic: str | None) -> str:
-    """The scan topic to read (`topics`: every topic's message type): the one given, which must
-    be a PointCloud2 or LaserScan topic, or else the log's only one."""
-    scans = sorted(t for t, s in topics.items() if s in SCAN_TYPES)
-    if topic is None:
-        if len(scans) != 1:
-            raise SourceError(f"{where}: found {len(scans)} PointCloud2/LaserScan topics ({', '.join(scans) or 'none'}); "
-                              "choose one with --topic")
-        return scans[0]
-    if topics.get(topic) not in SCAN_TYPES:
-        raise SourceError(f"{where}: topic '{topic}' is not a PointCloud2 or LaserScan topic "
-                          f"(those topics: {', '.join(scans) or 'none'})")
-    return topic
 
 
 def _decoder_factory():

@@ -70,6 +70,21 @@ def decode_scan(where: str, msgtype: str, msg) -> np.ndarray:
     return decode_laserscan(where, msg) if msgtype == LASER else decode_pointcloud2(where, msg)
 
 
+def scan_topic(where: str, topics: dict[str, str], topic: str | None) -> str:
+    """The scan topic to read (`topics`: every topic's message type): the one given, which must
+    be a PointCloud2 or LaserScan topic, or else the log's only one."""
+    scans = sorted(t for t, s in topics.items() if s in SCAN_TYPES)
+    if topic is None:
+        if len(scans) != 1:
+            raise SourceError(f"{where}: found {len(scans)} PointCloud2/LaserScan topics ({', '.join(scans) or 'none'}); "
+                              "choose one with --topic")
+        return scans[0]
+    if topics.get(topic) not in SCAN_TYPES:
+        raise SourceError(f"{where}: topic '{topic}' is not a PointCloud2 or LaserScan topic "
+                          f"(those topics: {', '.join(scans) or 'none'})")
+    return topic
+
+
 def scan_messages(items: Iterator, decode: Callable, poses, where: str, topic: str, msgtype: str, errors: tuple,
                   problem: Callable[[Exception], str], start: int, stop: int | None, every: int,
                   on_bad: Callable | None, index: int = 0) -> Iterator[tuple]:

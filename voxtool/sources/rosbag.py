@@ -11,7 +11,7 @@ import numpy as np
 
 from voxtool.errors import SourceError
 from voxtool.geometry import Pose
-from voxtool.sources.ros_msgs import scan_messages
+from voxtool.sources.ros_msgs import scan_messages, scan_topic
 from voxtool.sources.tf import POSE_TYPES, TF, SensorPoses
 
 
@@ -42,10 +42,10 @@ class BagBomb(Exception):
 def _bounded(name: str, decompress) -> callable:
     """A chunk decompressor that stops at what real data expands to (compression.check_expansion's
     bound on the chunk's compressed bytes) instead of expanding a bomb to its end."""
-    from voxtool.compression import EXPANSION_RATIO, EXPANSION_SMALL
+    from voxtool.compression import expansion_limit
 
     def bounded(data, *_):
-        limit = EXPANSION_SMALL + EXPANSION_RATIO * len(data)
+        limit = expansion_limit(len(data))
         out = decompress(bytes(data), limit + 1)
         if len(out) > limit:
             raise BagBomb(f"a {name} chunk of {len(data):,} bytes expands beyond {limit:,} bytes: more than real "
@@ -125,8 +125,6 @@ class BagCloudSource:
     def __init__(self, path: str | Path, topic: str | None, world_frame: str | None, pose_topic: str | None) -> None:
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
-
-        from voxtool.sources.mcap_ros2 import scan_topic
 
         self.path = Path(path)
         bound_bag_chunks()
