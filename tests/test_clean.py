@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import cli
 
-from voxtool.clean import CleanParams, VoidMap, accuracy, clean_stream, cube_offsets, dynamic_points
+from voxtool.clean import CleanParams, VoidMap, accuracy, clean_stream, dynamic_points
 from voxtool.errors import ParameterError
 from voxtool.sources import open_source
 from voxtool.synthetic import Box, Lidar, Scene, street, write_pcd_scans
@@ -125,23 +125,106 @@ def test_balls_marked_by_whole_words_equal_balls_marked_bit_by_bit(radius):
     assert sum(bin(w & (2**64 - 1)).count("1") for row in tables[0].values() for w in row[8:]) > hits.shape[0]
 
 
-def test_a_point_is_dynamic_when_its_voxel_and_its_cube_are_void():
-    vm = VoidMap(CleanParams(resolution=1.0, pose_error=1), threads=2)
+def cube_offsets(radius: int) -> np.ndarray:
+    """(n, 3) offsets of the (2r+1)^3 cube around a voxel, itself excluded."""
+    r = np.arange(-radius, radius + 1)
+    cube = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
+    return cube[np.any(cube != 0, axis=1)]
+
+
+def expand(keys, masks):
+    """Finest-level codes of the voxels of 512-bit brick masks."""
+    bits = np.unpackbits(np.ascontiguousarray(masks).view(np.uint8), axis=1, bitorder="little").astype(bool)
+    rows, inner = np.nonzero(bits)
+    return np.unique(keys[rows] << 9 | inner)
+
+
+@pytest.mark.parametrize("pose_error", [1, 2])
+def test_void_is_where_one_scan_knew_the_whole_cube(pose_error):
+    """Brute force over sets of keys: a crossed voxel holding a point is void when every voxel
+    of its pose_error cube was crossed or stopped at by the same scan."""
+    from voxtool.keys import morton_decode, morton_encode
+
+    scan = next(iter(street(1, lidar=Lidar(beams=16, columns=180)).scans()))
+    from voxtool.sources.scan import Scan
+
+    vm = VoidMap(CleanParams(resolution=0.25, sensor_noise=0.3, pose_error=pose_error), threads=2)
+    prepared = vm.prepare(Scan(scan[0], scan[1].astype(np.float32)))
+    parts = vm.evidence(prepared)
+    bricks, masks = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    crossed = expand(bricks, masks)
+    stop_keys, stop_bits = prepared.near_hits
+    used = stop_keys >= 0
+    stopped = expand(stop_keys[used], stop_bits[used, :8])
+    rng = np.random.default_rng(pose_error)
+    judged = crossed[rng.random(crossed.shape[0]) < 0.5]  # voxels holding points: half the crossed ones
+    vm.points.add_codes(judged)
+    got = expand(*vm.seen_whole(bricks, masks, prepared.near_hits))
+
+    known = {tuple(k) for k in morton_decode(np.union1d(crossed, stopped)).astype(int).tolist()}
+    cube = cube_offsets(pose_error)
+    want = [c for c, k in zip(judged.tolist(), morton_decode(judged).astype(int).tolist())
+            if all((k[0] + dx, k[1] + dy, k[2] + dz) in known for dx, dy, dz in cube.tolist())]
+    assert 0 < len(want) < judged.shape[0] // 2  # grazing rays and gaps make most not void
+    np.testing.assert_array_equal(got, np.array(want, dtype=np.int64))
+    assert np.isin(got, morton_encode(morton_decode(judged))).all()
+
+
+def test_a_point_is_dynamic_when_enough_of_its_group_lies_in_void():
+    """Brute force, scan by scan with breadth-first searches over sets of voxels: the points in
+    crossed voxels within GROUP_STEPS steps of a void voxel (through such voxels), in groups of
+    26-connected voxels, dynamic where at least MIN_VOID_POINTS points and group_share of the
+    group's points lie in void voxels."""
+    from voxtool.clean import GROUP_STEPS, MIN_VOID_POINTS
     from voxtool.keys import coords_to_keys, morton_encode
 
-    void = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3)  # a 7^3 void block
-    void = void[~((void[:, 0] == 2) & (void[:, 1] == 2) & (void[:, 2] == 2))]  # with one hole
-    codes = np.sort(morton_encode(coords_to_keys(void + 0.5, 1.0)))
-    vm.add_void(codes)
-    rng = np.random.default_rng(1)
-    points = rng.uniform(-5, 5, (5000, 3)).astype(np.float32)
-    got = dynamic_points(vm, points)
-    # brute force: the voxel and its 26 neighbours all in the void set
-    voids = {tuple(v) for v in void.tolist()}
-    cells = np.floor(points).astype(int)
-    want = np.array([all((c[0] + dx, c[1] + dy, c[2] + dz) in voids for dx, dy, dz in [(0, 0, 0), *cube_offsets(1)])
-                     for c in cells.tolist()])
-    assert want.any() and (~want).any()
+    params = CleanParams(resolution=1.0, group_share=0.4)
+    vm = VoidMap(params, threads=2)
+    rng = np.random.default_rng(3)
+    cells = rng.integers(-9, 9, (1800, 3))
+    crossed, void = cells[rng.random(1800) < 0.7], cells[rng.random(1800) < 0.08]
+    vm.crossed.add_codes(morton_encode(coords_to_keys(crossed + 0.5, 1.0)))
+    vm.void.add_codes(morton_encode(coords_to_keys(void + 0.5, 1.0)))
+    scans = [rng.uniform(-9, 9, (n, 3)).astype(np.float32) for n in (0, 2000, 4000, 3)]
+    starts = np.concatenate([[0], np.cumsum([len(s) for s in scans])])
+    got = dynamic_points(vm, np.concatenate(scans), starts)
+
+    crossed_set, void_set = set(map(tuple, crossed.tolist())), set(map(tuple, void.tolist()))
+    around = [tuple(d) for d in cube_offsets(1).tolist()]
+
+    def step(c):
+        return [(c[0] + d[0], c[1] + d[1], c[2] + d[2]) for d in around]
+
+    want, far_members = [], 0
+    for points in scans:
+        cells_of = [tuple(c) for c in np.floor(points).astype(int).tolist()]
+        seen = {c for c in cells_of if c in crossed_set or c in void_set}
+        steps = {c: 0 for c in seen if c in void_set and c in cells_of}
+        frontier = list(steps)
+        for k in range(1, GROUP_STEPS + 1):
+            frontier = [n for c in frontier for n in step(c) if n in seen and n not in steps]
+            for n in frontier:
+                steps.setdefault(n, k)
+        far_members += len(seen) - len(steps)
+        group = {}
+        for start in steps:
+            if start in group:
+                continue
+            group[start], queue = start, [start]
+            while queue:
+                for n in step(queue.pop()):
+                    if n in steps and n not in group:
+                        group[n] = start
+                        queue.append(n)
+        size, voids = {}, {}
+        for c in cells_of:
+            if c in group:
+                size[group[c]] = size.get(group[c], 0) + 1
+                voids[group[c]] = voids.get(group[c], 0) + (c in void_set)
+        want += [c in group and voids[group[c]] >= max(MIN_VOID_POINTS, params.group_share * size[group[c]])
+                 for c in cells_of]
+    want = np.array(want, dtype=bool)
+    assert want.any() and (~want).any() and far_members > 0
     np.testing.assert_array_equal(got, want)
 
 
@@ -182,7 +265,9 @@ def test_the_street_scores_high(tmp_path):
     truth = write_pcd_scans(street(15), tmp_path / "scans")  # 32 beams: a 16-beam pattern leaves gaps (see above)
     cleaned = clean_stream(open_source(tmp_path / "scans"), CleanParams(), threads=2, progress=False)
     score = accuracy(cleaned.dynamic, truth)
-    assert score["SA"] >= 99.0 and score["DA"] >= 65.0, score  # 73 % on 15 scans, 95 % on 30 (bench_clean)
+    # DA 54 % on 15 scans, 84 % on 30 (bench_clean): 32 beams leave gaps that one scan never sees
+    # whole, so far movers get no void voxels (docs/design/clean.md)
+    assert score["SA"] >= 99.5 and score["DA"] >= 45.0, score
     # labels follow the points scan by scan
     assert cleaned.scan_starts[-1] == truth.shape[0] and len(cleaned.scan_starts) == 16
 

