@@ -226,7 +226,7 @@ class VoidMap:
                                voxel_updates=voxels, ray_steps=sum(p[3] for p in parts), rays=prepared.rays)
 
     def used_bytes(self) -> int:
-        return self.crossed.nbytes() + self.void.nbytes()
+        return self.crossed.nbytes() + self.void.nbytes() + self.points.nbytes()
 
 
 CLASSIFY_CHUNK = 131_072  # points a thread looks up at a time
