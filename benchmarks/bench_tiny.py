@@ -59,9 +59,10 @@ def main() -> None:
         row = {"dataset": name, "resolution": res, "octree_occupied": int(o_occ.size), "tiny_occupied": int(t_occ.size),
                "only_octree": int(np.setdiff1d(o_occ, t_occ).size), "only_tiny": int(np.setdiff1d(t_occ, o_occ).size),
                "known_voxels_equal": bool(np.array_equal(o_all, t_all)),
-               "octree_nodes": leaves_o + inner_o, "tiny_nodes": 1 + 8 * (ps["pool_blocks_used"] - 1),
-               "octree_bytes_used": octree.used_bytes(),
-               "tiny_bytes_used": ps["pool_blocks_used"] * 8 * ps["bytes_per_node"],
+               "octree_nodes": leaves_o + inner_o, "tiny_nodes": leaves_t + inner_t,
+               "tiny_slots": 1 + 8 * (ps["pool_blocks_used"] - 1) + 8 * ps["leaf_blocks_used"],
+               "tiny_blocks": ps["pool_blocks_used"], "tiny_finest_blocks": ps["leaf_blocks_used"],
+               "octree_bytes_used": octree.used_bytes(), "tiny_bytes_used": tiny.used_bytes(),
                "tiny_bytes_per_node": ps["bytes_per_node"],
                "octree_bytes_per_node": round(octree.used_bytes() / max(leaves_o + inner_o, 1), 2),
                "tiny_dropped": ps["dropped_updates"], "tiny_outside": ps["outside_map_updates"],
@@ -75,7 +76,8 @@ def main() -> None:
             for scan in open_source(src, SourceOptions()).scans:
                 tree.insertPointCloud(scan.points.astype(np.float64), scan.origin.astype(np.float64))
             row.update(octomap_nodes=int(tree.size()), octomap_memory_usage=int(tree.memoryUsage()),
-                       octomap_bytes_per_node=round(tree.memoryUsage() / tree.size(), 2))
+                       octomap_bytes_per_node=round(tree.memoryUsage() / tree.size(), 2),
+                       tiny_below_octomap_pct=round(100 * (1 - tiny.used_bytes() / tree.memoryUsage()), 2))
         merged, rep_m = build(src, "octree", MapParams(res, merge_rays=True))
         a, b = octree.leaves(), merged.leaves()
         row.update(merge_ratio=round(rep_m.merged_rays / max(rep_m.rays, 1), 4), merged_rays=rep_m.merged_rays,
@@ -84,6 +86,13 @@ def main() -> None:
                    merged_map_identical=bool(np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)))
         rows.append(row)
         print(json.dumps(row))
+    print(f"\n{'dataset':12} {'res':>5} {'TinyOctoMap':>12} {'octree':>12} {'OctoMap':>12} {'below OctoMap':>14} "
+          f"{'inner blocks':>12} {'finest blocks':>13}")
+    for r in rows:
+        om = r.get("octomap_memory_usage")
+        print(f"{r['dataset']:12} {r['resolution']:>5} {r['tiny_bytes_used'] / 1e6:>9.2f} MB {r['octree_bytes_used'] / 1e6:>9.2f} MB "
+              f"{(om or 0) / 1e6:>9.2f} MB {r.get('tiny_below_octomap_pct', float('nan')):>13.1f}% "
+              f"{r['tiny_blocks']:>12,} {r['tiny_finest_blocks']:>13,}")
     Path(args.out).parent.mkdir(exist_ok=True)
     Path(args.out).write_text(json.dumps(rows, indent=2))
 

@@ -21,9 +21,12 @@ def levels_of(m: TinyMap) -> dict:
     return {tuple(int(v) for v in k): int(x) for k, x in zip(morton_decode(full), lv)}
 
 
-@pytest.mark.parametrize("hit,miss,prior", [(2, 1, 6), (3, 2, 8)])
-def test_levels_equal_brute_force_integer_reference(hit, miss, prior):
-    m = TinyMap(MapParams(0.2), SensorModel(), pool_blocks=1 << 16, map_size=25.6, hit=hit, miss=miss, prior=prior)
+@pytest.mark.parametrize("hit,miss,prior,pool_blocks", [(2, 1, 6, 4096), (3, 2, 8, 1 << 16), (2, 1, 6, None)])
+def test_levels_equal_brute_force_integer_reference(hit, miss, prior, pool_blocks):
+    """The paper's 16-bit pool of 4,096 blocks, a fixed 32-bit pool (the finest level packed, 4
+    bits a voxel) and a grown one (packed, grown from 256 blocks as it fills)."""
+    m = TinyMap(MapParams(0.2), SensorModel(), pool_blocks=pool_blocks, map_size=25.6, hit=hit, miss=miss,
+                prior=prior)
     ref: dict = {}
     for scan in world_scans(10, 150, seed=4):
         m.integrate(scan)
@@ -32,7 +35,35 @@ def test_levels_equal_brute_force_integer_reference(hit, miss, prior):
             for k in keys:
                 ref[k] = min(max(ref.get(k, prior) + step, 1), 15)
     assert levels_of(m) == ref
-    assert m.pool_stats()["dropped_updates"] == 0
+    stats = m.pool_stats()
+    assert stats["dropped_updates"] == 0 and stats["finest_level_packed"] == (pool_blocks != 4096)
+    if pool_blocks is None:  # the finest level outgrew its first pool, and pruning gave blocks back
+        assert stats["leaf_blocks"] > 256 and stats["pool_blocks"] > 256
+
+
+def test_packed_finest_level_prunes_and_gives_blocks_back():
+    """The same scan again and again from one spot: the free space near the sensor clamps, its
+    8-voxel blocks prune into their parents and the packed blocks go back to the free list;
+    the levels still equal the brute-force reference, and a snapshot reloads them."""
+    from voxtool.sources.scan import Scan
+
+    rng = np.random.default_rng(2)
+    direction = rng.normal(size=(3000, 3))
+    points = (6.0 * direction / np.linalg.norm(direction, axis=1, keepdims=True)).astype(np.float32)
+    scan = Scan(points, np.array([0.05, 0.05, 0.05], dtype=np.float32))
+    m = TinyMap(MapParams(0.2), SensorModel(), map_size=25.6)
+    ref: dict = {}
+    free, occ = scan_update_sets(scan.points, scan.origin, 0.2)
+    for _ in range(8):
+        m.integrate(scan)
+        for keys, step in ((free, -1), (occ, 2)):
+            for k in keys:
+                ref[k] = min(max(ref.get(k, 6) + step, 1), 15)
+    assert levels_of(m) == ref
+    assert m.meta[5] > 0  # packed blocks given back
+    back = TinyMap(MapParams(0.2), SensorModel(), map_size=25.6)
+    back.load_state(m.state_arrays())
+    assert levels_of(back) == ref and back.used_bytes() == m.used_bytes()
 
 
 def test_sixteen_bit_nodes_for_the_papers_pool_and_wider_beyond():

@@ -50,17 +50,32 @@ class TinyMap:
         # a budget (the paper's fixed pool: updates that need more are dropped and counted), or
         # none: the pool grows as the map needs (32-bit words)
         self.budget = pool_blocks
-        blocks = pool_blocks if pool_blocks is not None else 4096
+        blocks = pool_blocks if pool_blocks is not None else 256  # a grown pool doubles as it fills
         dtype = np.uint16 if pool_blocks is not None and pool_blocks <= 4096 else np.uint32  # 12 index bits: 16-bit words
         self.pool = np.zeros(blocks * 8, dtype=dtype)
         self.free = np.zeros(blocks, dtype=np.int64)
-        self.meta = np.array([0, 1, blocks, 0, 0], dtype=np.int64)
+        # 32-bit words pack the finest level, 8 voxels a uint32 (kernels.tiny), in a second pool of
+        # as many blocks; the paper's 16-bit pool keeps its words throughout
+        self.pack = dtype == np.uint32
+        leaf_blocks = blocks if self.pack else 0
+        self.finest = np.zeros(leaf_blocks, dtype=np.uint32)
+        self.finest_free = np.zeros(leaf_blocks, dtype=np.int64)
+        self.meta = np.array([0, 1, blocks, 0, 0, 0, 1, leaf_blocks], dtype=np.int64)
 
     @property
     def pool_blocks(self) -> int:
         return int(self.meta[K.T_BLOCKS])
 
     def _grow(self) -> None:
+        """Double whichever pool is full (the kernel stopped for want of a block)."""
+        if self.pack and self.meta[K.T_LEAF_FREE_TOP] == 0 and self.meta[K.T_LEAF_NEXT] >= self.meta[K.T_LEAF_BLOCKS]:
+            blocks = min(2 * self.finest.shape[0], MAX_BLOCKS)
+            if blocks == self.finest.shape[0]:
+                raise ParameterError(f"tiny map: the finest level would need more than {MAX_BLOCKS} blocks")
+            self.finest = np.concatenate([self.finest, np.zeros(blocks - self.finest.shape[0], dtype=np.uint32)])
+            self.finest_free = np.concatenate([self.finest_free, np.zeros(blocks - self.finest_free.shape[0], dtype=np.int64)])
+            self.meta[K.T_LEAF_BLOCKS] = blocks
+            return
         blocks = min(2 * self.pool_blocks, MAX_BLOCKS)
         if blocks == self.pool_blocks:
             raise ParameterError(f"tiny map: the pool would need more than {MAX_BLOCKS} blocks")
@@ -82,8 +97,9 @@ class TinyMap:
         t0 = time.perf_counter()
         start, n = 0, prepared.packed.shape[0]
         while True:
-            start = K.tiny_apply(self.pool, self.free, self.meta, prepared.packed, self.offset, self.depth,
-                                 self.hit, self.miss, self.prior, 1, 15, start, self.budget is None)
+            start = K.tiny_apply(self.pool, self.free, self.finest, self.finest_free, self.meta, prepared.packed,
+                                 self.offset, self.depth, self.hit, self.miss, self.prior, 1, 15, start,
+                                 self.budget is None, self.pack)
             if start >= n:
                 break
             self._grow()
@@ -95,11 +111,11 @@ class TinyMap:
         return self.apply(self.prepare(scan))
 
     def level_leaves(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        n = self.blocks_used() * 8 + 8
+        n = (self.blocks_used() + self.leaf_blocks_used()) * 8 + 8
         codes = np.empty(n, dtype=np.int64)
         depths = np.empty(n, dtype=np.uint8)
         levels = np.empty(n, dtype=np.int64)
-        k = K.tiny_leaves(self.pool, self.offset, self.depth, codes, depths, levels)
+        k = K.tiny_leaves(self.pool, self.finest, self.pack, self.offset, self.depth, codes, depths, levels)
         return codes[:k], depths[:k], levels[:k]
 
     def leaves(self) -> Leaves:
@@ -121,17 +137,20 @@ class TinyMap:
     def blocks_used(self) -> int:
         return int(self.meta[K.T_NEXT] - self.meta[K.T_FREE_TOP])
 
+    def leaf_blocks_used(self) -> int:
+        """Packed finest-level blocks in use (leaf block 0 is never used)."""
+        return int(max(self.meta[K.T_LEAF_NEXT] - 1 - self.meta[K.T_LEAF_FREE_TOP], 0)) if self.pack else 0
+
     def node_counts(self) -> tuple[int, int]:
         codes, _, _ = self.level_leaves()
-        used_nodes = 1 + 8 * (self.blocks_used() - 1)  # root + every allocated block's 8 slots
-        inner = self.blocks_used() - 1
-        return int(codes.shape[0]), int(inner) if used_nodes else 0
+        inner = self.blocks_used() - 1 + self.leaf_blocks_used()  # one parent per allocated block
+        return int(codes.shape[0]), int(inner)
 
     def memory_bytes(self) -> int:
-        return int(self.pool.nbytes)
+        return int(self.pool.nbytes + self.finest.nbytes)
 
     def used_bytes(self) -> int:
-        return int(self.blocks_used() * 8 * self.pool.itemsize)
+        return int(self.blocks_used() * 8 * self.pool.itemsize + self.leaf_blocks_used() * self.finest.itemsize)
 
     def extra_stats(self) -> dict[str, Any]:
         return self.pool_stats()
@@ -140,29 +159,46 @@ class TinyMap:
         used = self.blocks_used()
         return {"pool_blocks": self.pool_blocks, "pool_budget": self.budget, "pool_blocks_used": used,
                 "pool_usage": round(used / self.pool_blocks, 6),
-                "bytes_per_node": int(self.pool.itemsize), "dropped_updates": int(self.meta[K.T_DROPPED]),
+                "bytes_per_node": int(self.pool.itemsize), "finest_level_packed": self.pack,
+                "leaf_blocks": int(self.finest.shape[0]), "leaf_blocks_used": self.leaf_blocks_used(),
+                "dropped_updates": int(self.meta[K.T_DROPPED]),
                 "outside_map_updates": int(self.meta[K.T_OUTSIDE]), "depth": self.depth, "map_size_m": self.map_size}
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         lv = self.leaves()
         return {"leaf_codes": lv.codes, "leaf_depths": lv.depths, "leaf_values": lv.values,
-                "tiny_pool": self.pool.astype(np.uint32), "tiny_free": self.free, "tiny_meta": self.meta}
+                "tiny_pool": self.pool.astype(np.uint32), "tiny_free": self.free, "tiny_meta": self.meta,
+                "tiny_leaves": self.finest, "tiny_leaf_free": self.finest_free}
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
+        """The pools of a snapshot. One written before the finest level was packed (meta of 5,
+        no `tiny_leaves`) loads unpacked, as it was built."""
         from voxtool.errors import FormatError
 
         pool, free, meta = arrays.get("tiny_pool"), arrays.get("tiny_free"), arrays.get("tiny_meta")
-        if pool is None or free is None or meta is None or meta.shape[0] != 5:
+        leaves, leaf_free = arrays.get("tiny_leaves"), arrays.get("tiny_leaf_free")
+        if pool is None or free is None or meta is None or meta.shape[0] not in (5, K.META_SIZE):
             raise FormatError("tiny snapshot: pool arrays missing")
-        blocks = pool.shape[0] // 8
+        if meta.shape[0] == 5:
+            meta = np.concatenate([meta, [0, 1, 0]])
+            leaves, leaf_free = np.zeros(0, dtype=np.uint32), np.zeros(0, dtype=np.int64)
+        if leaves is None or leaf_free is None:
+            raise FormatError("tiny snapshot: pool arrays missing")
+        blocks, leaf_blocks = pool.shape[0] // 8, leaves.shape[0]
+        pack = leaf_blocks > 0
         if pool.shape[0] % 8 or free.shape[0] != blocks or blocks > MAX_BLOCKS or meta[K.T_BLOCKS] != blocks \
+                or leaf_free.shape[0] != leaf_blocks or leaf_blocks > MAX_BLOCKS or meta[K.T_LEAF_BLOCKS] != leaf_blocks \
                 or (self.budget is not None and blocks != self.budget):
             raise FormatError("tiny snapshot: pool arrays of the wrong size")
-        if np.any((pool >> 4) >= blocks) or np.any(free < 0) or np.any(free >= blocks):
+        if np.any((pool >> 4) >= max(blocks, leaf_blocks)) or np.any(free < 0) or np.any(free >= blocks) \
+                or np.any(leaf_free < 0) or np.any(leaf_free >= max(leaf_blocks, 1)):
             raise FormatError("tiny snapshot: a child index points outside the pool")
         self.pool = pool.astype(self.pool.dtype)
         self.free = free.astype(np.int64)
+        self.finest = leaves.astype(np.uint32)
+        self.finest_free = leaf_free.astype(np.int64)
         self.meta = meta.astype(np.int64)
+        self.pack = pack
 
     def extra_meta(self) -> dict[str, Any]:
         return {"pool_blocks": self.budget, "map_size": self.map_size, "hit": self.hit, "miss": self.miss,
