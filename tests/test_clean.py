@@ -327,6 +327,7 @@ def test_clean_shows_what_it_removed(tmp_path):
     (["-o", "static.pcd", "--resolution", "0"], 2, "resolution=0.0 must lie in"),
     (["-o", "static.pcd", "--pose-error", "9"], 2, "pose_error=9 must lie in 0..5"),
     (["-o", "static.pcd", "--sensor-noise", "-1"], 2, "sensor_noise=-1.0 must lie in"),
+    (["-o", "static.pcd", "--group-share", "1.5"], 2, "1.5 is not in the range 0.0<=x<=1.0"),
 ])
 def test_bad_parameters_are_one_line_and_write_nothing(tmp_path, monkeypatch, args, exit_code, message):
     monkeypatch.chdir(tmp_path)
