@@ -147,12 +147,14 @@ class VoidMap:
         self.points = BrickSet()  # the voxels holding points of any scan: the only ones judged
 
     def warm_up(self) -> None:
-        from voxtool.kernels.clean import rehash_bricks, voxel_groups
+        from voxtool.kernels.clean import rehash_bricks, voxel_groups, within_steps
 
         self.apply(self.prepare(Scan(np.array([[1.0, 0.5, 0.25], [1.1, 0.5, 0.25]], dtype=np.float32),
                                      np.zeros(3, dtype=np.float32))))
         dynamic_points(self, np.zeros((1, 3), dtype=np.float32))
         voxel_groups(np.arange(2, dtype=np.int64))
+        within_steps(np.arange(2, dtype=np.int64), np.ones(2, dtype=bool), GROUP_STEPS)
+        BrickSet().add_codes(np.arange(2, dtype=np.int64))
         for cells in (self.crossed, self.void):
             rehash_bricks(cells.keys, cells.bits, cells.keys.copy(), cells.bits.copy())  # the tables' growth
             cells.clear()
