@@ -44,7 +44,7 @@ class CleanParams:
     sensor_noise: float = 0.2  # d_s: no void evidence within d_s of a point of the same scan
     pose_error: int = 1  # d_p: voxels around a crossed voxel that one scan must know for it to be void
     max_range: float = -1.0  # rays are cut here (no void beyond); < 0 unlimited
-    group_share: float = 0.25  # share of a group's points in void voxels that makes it dynamic
+    group_share: float = 0.15  # share of a group's points in void voxels that makes it dynamic
 
     def __post_init__(self) -> None:
         MapParams(resolution=self.resolution, max_range=self.max_range)  # the same checks as a map's

@@ -38,7 +38,7 @@ from voxtool.cli.common import (
 @click.option("--pose-error", default=1, show_default=True, type=int,
               help="d_p: a voxel is void when one scan saw through it and every voxel within d_p of it "
                    "(pose error); 0: its own voxel only.")
-@click.option("--group-share", default=0.25, show_default=True, type=click.FloatRange(0.0, 1.0),
+@click.option("--group-share", default=0.15, show_default=True, type=click.FloatRange(0.0, 1.0),
               help="A group of points (connected voxels some ray crossed) is removed when this share of its "
                    "points lie in void voxels.")
 @click.option("--max-range", default=-1.0, show_default=True, type=float,
