@@ -5,15 +5,18 @@ within `sensor_noise` of the end of any ray of the scan (DUFOMap's inflated hits
 within `sensor_noise` of any of its points (porous surfaces such as foliage, seen through
 between the hits of one scan). A crossed voxel is *void* when the same scan also knew every
 voxel within `pose_error` of it (crossed it, or stopped in it): space the scan saw through
-whole, not a ray grazing a surface or passing between sparse beams. A point is dynamic when,
-among the points of its own scan whose voxels some scan crossed, within GROUP_STEPS voxels of
-a point in a void voxel, it belongs to a connected group (26-neighbour voxels) of which at
-least MIN_VOID_POINTS points and `group_share` lie in void voxels: an object that another scan
-saw through, the part of it that no scan saw through whole (its bottom near the ground, its
-edges) included; a lone void voxel in a surface that rays grazed is not. Everything else is static. Both maps
-hold a bit per voxel that the exact OctoMap ray casting (voxtool.maps.octree's caster)
-crossed; docs/cleaning.md says how to tune it and docs/design/clean.md why it was chosen and
-what it was measured against.
+whole, not a ray grazing a surface or passing between sparse beams.
+
+A point is dynamic by its group: the points of its scan in voxels some ray crossed, within
+GROUP_STEPS voxel steps of a point in a void voxel, joined as 26-connected voxels; a group is
+dynamic when at least MIN_VOID_POINTS and `group_share` of its points lie in void voxels. So
+an object another scan saw through goes whole, the parts no scan saw through whole (its bottom
+near the ground, its edges) included, while a lone void voxel in a surface that rays grazed
+keeps its points. Everything else is static.
+
+The maps hold a bit per voxel of what the exact OctoMap ray casting (voxtool.maps.octree's
+caster) crossed; docs/cleaning.md says how to tune it and docs/design/clean.md why it was
+chosen and what it was measured against.
 """
 
 from __future__ import annotations
@@ -214,16 +217,17 @@ class VoidMap:
         return crossed.keys[rows], out[rows]
 
     def apply(self, prepared: PreparedScan) -> IntegrateTiming:
+        """Cast the scan's rays; its void voxels, then its crossed ones, into the maps."""
         t0 = time.perf_counter()
         parts = self.evidence(prepared) if prepared.scan.points.shape[0] else []
-        voxels = 0
-        if parts:
-            bricks = np.concatenate([p[0] for p in parts])
-            masks = np.concatenate([p[1] for p in parts])
-            self.void.add(*self.seen_whole(bricks, masks, prepared.near_hits))
+        if not parts:
+            return IntegrateTiming(raycast=prepared.seconds, update=0.0, voxel_updates=0, ray_steps=0,
+                                   rays=prepared.rays)
+        bricks = np.concatenate([p[0] for p in parts])
+        masks = np.concatenate([p[1] for p in parts])
+        self.void.add(*self.seen_whole(bricks, masks, prepared.near_hits))
         t1 = time.perf_counter()
-        if parts:
-            voxels = self.crossed.add(bricks, masks)
+        voxels = self.crossed.add(bricks, masks)
         return IntegrateTiming(raycast=prepared.seconds + (t1 - t0), update=time.perf_counter() - t1,
                                voxel_updates=voxels, ray_steps=sum(p[3] for p in parts), rays=prepared.rays)
 
