@@ -309,7 +309,10 @@ def test_clean_shows_what_it_removed(tmp_path):
     removed = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "removed.ply")).points)
     np.testing.assert_allclose(removed, world[truth], rtol=0, atol=0)
     assert result["written"] == [str(tmp_path / "removed.ply"), str(tmp_path / "top.png")]
-    assert imread(tmp_path / "top.png").shape[:2] == (result["png"]["height"], result["png"]["width"])
+    image = imread(tmp_path / "top.png")
+    assert image.shape[:2] == (result["png"]["height"], result["png"]["width"])
+    red = (image[..., 0] > 0.9) & (image[..., 1] < 0.1) & (image[..., 2] < 0.1)
+    assert red[:, : image.shape[1] // 2].sum() > 20 and not red[:, image.shape[1] // 2:].any()  # before, not after
     code, out, err = cli("clean", tmp_path / "scans", "--png", tmp_path / "side.png", "--view", "side", "--no-progress")
     assert code == 0 and (tmp_path / "side.png").is_file(), err
     from voxtool.plots import clean_figure

@@ -155,34 +155,70 @@ def write_plot(fig, path: str | Path) -> dict:
 CLEAN_VIEWS = {"top": (0, 1, 2), "front": (0, 2, 1), "side": (1, 2, 0)}  # (horizontal, vertical, colour) axes
 
 
+CLEAN_RASTER = 520  # pixels along the longer side of a panel: about its width on the 120-dpi page
+
+
+def _top_pixels(u: np.ndarray, w: np.ndarray, depth: np.ndarray, extent, shape) -> tuple[np.ndarray, np.ndarray]:
+    """For points (u, w) over `extent` (u0, u1, w0, w1) in a raster of `shape` (rows, columns):
+    each lit pixel (flat index) and the point it shows, the one of greatest `depth` (nearest
+    the viewer), as a scatter plot drawn in that order would."""
+    rows, cols = shape
+    u0, u1, w0, w1 = extent
+    col = np.floor((u - u0) / max(u1 - u0, 1e-9) * cols).astype(np.int64)
+    row = np.floor((w - w0) / max(w1 - w0, 1e-9) * rows).astype(np.int64)
+    inside = np.flatnonzero((col >= 0) & (col < cols) & (row >= 0) & (row < rows))
+    pixel = row[inside] * cols + col[inside]
+    order = np.lexsort((depth[inside], pixel))  # by pixel, nearest last
+    last = np.flatnonzero(np.append(pixel[order][1:] != pixel[order][:-1], True))
+    return pixel[order][last], inside[order][last]
+
+
 def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: float | None = None,
                  view: str = "top"):
     """`clean` before and after, seen from above (or, as export's pictures, from the front or
     the side): every point by height (depth for front/side) with the removed ones in red, then
     the static points alone (same axes). `extent_m`: a square of that side around the points'
-    median (a long drive is otherwise too small to judge)."""
+    median (a long drive is otherwise too small to judge). The points are drawn as pixels of a
+    raster (the nearest point of each): a scatter plot of a million points took 5 s to draw."""
     from voxtool.io.picture import height_colours
 
     u, w, c = CLEAN_VIEWS[view]
-    points = points[:, [u, w, c]]
+    points = points[:, [u, w, c]].astype(np.float64)
     fig = _figure(1, 5.2)
     before, after = fig.subplots(1, 2, sharex=True, sharey=True)
     z = points[:, 2]
     lo, hi = np.percentile(z, [1, 99]) if z.size else (0.0, 1.0)
-    colours = height_colours(np.clip(z, lo, hi), (float(lo), float(hi)))
-    static = ~dynamic
-    for ax, mask, name in ((before, np.ones_like(static), "before"), (after, static, "after")):
-        ax.scatter(points[mask & static, 0], points[mask & static, 1], s=0.05, c=colours[mask & static],
-                   linewidths=0, rasterized=True)
-        ax.set_aspect("equal")
-        ax.set_xlabel(f"{'xyz'[u]} (m)")
-        ax.set_title(f"{name}: {int((mask & static).sum()):,} static points"
-                     + (f", {int(dynamic.sum()):,} removed (red)" if name == "before" else ""), fontsize=9)
-    before.scatter(points[dynamic, 0], points[dynamic, 1], s=0.4, c="red", linewidths=0, rasterized=True)
-    before.set_ylabel(f"{'xyz'[w]} (m)")
     if extent_m is not None and z.size:
         cx, cy = np.median(points[:, 0]), np.median(points[:, 1])
-        before.set_xlim(cx - extent_m / 2, cx + extent_m / 2)
-        before.set_ylim(cy - extent_m / 2, cy + extent_m / 2)
+        extent = (cx - extent_m / 2, cx + extent_m / 2, cy - extent_m / 2, cy + extent_m / 2)
+    elif z.size:
+        (u0, w0), (u1, w1) = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+        extent = (u0, u1 if u1 > u0 else u0 + 1.0, w0, w1 if w1 > w0 else w0 + 1.0)
+    else:
+        extent = (0.0, 1.0, 0.0, 1.0)
+    scale = CLEAN_RASTER / max(extent[1] - extent[0], extent[3] - extent[2])
+    shape = (max(1, int(round((extent[3] - extent[2]) * scale))), max(1, int(round((extent[1] - extent[0]) * scale))))
+    static = ~dynamic
+    colours = height_colours(np.clip(z, lo, hi), (float(lo), float(hi)))
+    kept = np.flatnonzero(static)
+    kept_pixel, which = _top_pixels(points[kept, 0], points[kept, 1], z[kept], extent, shape)
+    for ax, name in ((before, "before"), (after, "after")):
+        image = np.ones((shape[0] * shape[1], 4))
+        image[:, 3] = 0.0  # transparent where no point lies
+        image[kept_pixel, :3] = colours[kept[which], :3]
+        image[kept_pixel, 3] = 1.0
+        if name == "before" and dynamic.any():  # the removed ones in red, over everything, 2 x 2 pixels
+            gone = np.flatnonzero(dynamic)
+            pixel, _ = _top_pixels(points[gone, 0], points[gone, 1], z[gone], extent, shape)
+            for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
+                r, cl = pixel // shape[1] + dr, pixel % shape[1] + dc
+                ok = (r < shape[0]) & (cl < shape[1])
+                image[r[ok] * shape[1] + cl[ok]] = (1.0, 0.0, 0.0, 1.0)
+        ax.imshow(image.reshape(shape[0], shape[1], 4), origin="lower", extent=extent, interpolation="nearest",
+                  aspect="equal")
+        ax.set_xlabel(f"{'xyz'[u]} (m)")
+        ax.set_title(f"{name}: {int(static.sum()):,} static points"
+                     + (f", {int(dynamic.sum()):,} removed (red)" if name == "before" else ""), fontsize=9)
+    before.set_ylabel(f"{'xyz'[w]} (m)")
     fig.suptitle(f"{title}, {view} view ({'xyz'[c]}: {lo:.1f} to {hi:.1f} m, viridis)", fontsize=10)
     return fig
