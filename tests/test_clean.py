@@ -12,7 +12,7 @@ from conftest import cli
 
 from voxtool.clean import CleanParams, VoidMap, accuracy, clean_stream, dynamic_points
 from voxtool.errors import ParameterError
-from voxtool.sources import open_source
+from voxtool.sources import SourceOptions, open_source
 from voxtool.synthetic import Box, Lidar, Scene, street, write_pcd_scans
 
 SMALL_LIDAR = Lidar(beams=16, columns=360, max_range=40.0, range_noise=0.01)
@@ -350,6 +350,21 @@ def test_a_bad_scan_file_keeps_the_old_output(tmp_path):
     assert code == 3, err
     assert err.count("\n") == 1 and "000001.pcd" in err
     assert (tmp_path / "static.pcd").read_bytes() == b"mine" and not (tmp_path / "l.npy").exists()
+
+
+def test_a_bad_scan_skipped_is_reported_and_the_others_judged(tmp_path):
+    """--bad-scans skip: one warning line, scans_skipped in --json, labels for the other scans."""
+    write_pcd_scans(one_moving_box(6), tmp_path / "scans")
+    bad = sorted((tmp_path / "scans").glob("*.pcd"))[2]
+    bad.write_bytes(bad.read_bytes()[:2000])
+    code, out, err = cli("clean", tmp_path / "scans", "--bad-scans", "skip", "--labels", tmp_path / "l.npy", "--json",
+                         "--no-progress")
+    assert code == 0, err
+    result = json.loads(out)
+    assert result["scans"] == 5 and result["scans_skipped"] == 1 and result["skipped_scans"][0]["index"] == 2
+    assert err.count("warning") == 1 and bad.name in err
+    others = [s.points for s in open_source(tmp_path / "scans", SourceOptions(bad_scans="skip")).scans]
+    assert np.load(tmp_path / "l.npy").shape[0] == sum(len(p) for p in others)
 
 
 def test_clean_on_the_shared_urban_drive_removes_little(shared_data, tmp_path):

@@ -345,7 +345,8 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     t_classify = time.perf_counter() - t0
     built = report.to_dict()
     figures = {
-        "scans": built["scans"], "points_read": built["points"], "points_dropped": built["points_dropped"],
+        "scans": built["scans"], "scans_skipped": built["scans_skipped"], "skipped_scans": built["skipped_scans"],
+        "points_read": built["points"], "points_dropped": built["points_dropped"],
         "points_in": int(points.shape[0]), "points_kept": int(points.shape[0] - dynamic.sum()),
         "points_removed": int(dynamic.sum()), "void_map_bytes": void_map.used_bytes(),
         "threads": void_map.threads, "params": asdict(params),
