@@ -79,7 +79,7 @@ def clean(source, sample, output, labels, dynamic, png, view, resolution, sensor
         ("points", f"{result['points_in']:,} judged ({result['points_dropped']:,} dropped on reading)"),
         ("kept (static)", f"{result['points_kept']:,}"),
         ("removed (dynamic)", f"{removed:,} ({share:.2%})"),
-        ("void map", f"{result['void_map_bytes'] / 2**20:.1f} MiB at {resolution} m"),
+        ("maps", f"{result['void_map_bytes'] / 2**20:.1f} MiB at {resolution} m (crossed, void, holding points)"),
         ("time", f"{t['scans_total']:.3f} s for the scans on {result['threads']} threads (ray casting "
                  f"{t['raycast']:.3f} s, void map {t['void_update']:.3f} s), judging {t['classify']:.3f} s, "
                  f"writing {t['write']:.3f} s"),
