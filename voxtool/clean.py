@@ -316,26 +316,20 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     points lie in (the only voxels ever judged), build the void map from every scan, then judge
     every point against the finished map."""
     import dataclasses
-    import sys
-
-    from tqdm import tqdm
 
     from voxtool.keys import point_codes
     from voxtool.pipeline import build
+    from voxtool.progress import track
 
     void_map = VoidMap(params, threads)
     t0 = time.perf_counter()
     scans = []
-    with tqdm(total=stream.count, unit="scan", desc="read", file=sys.stderr,
-              disable=not (sys.stderr.isatty() if progress is None else progress)) as bar:
-        for scan in stream.scans:
-            void_map.points.add_codes(point_codes(scan.points, params.resolution, what=f"{scan.source}: point"))
-            scans.append(scan)
-            bar.update()
+    for scan in track(stream.scans, stream.count, "read", progress, unit="scan"):
+        void_map.points.add_codes(point_codes(scan.points, params.resolution, what=f"{scan.source}: point"))
+        scans.append(scan)
     t_read = time.perf_counter() - t0
-    clouds: list[np.ndarray] = []
-    report = build(dataclasses.replace(stream, scans=iter(scans)), void_map, progress,
-                   on_scan=lambda scan, _: clouds.append(scan.points))
+    report = build(dataclasses.replace(stream, scans=iter(scans)), void_map, progress)
+    clouds = [scan.points for scan in scans]  # as read: build casts each scan unchanged
     del scans
     t0 = time.perf_counter()
     points = np.concatenate(clouds) if clouds else np.empty((0, 3), dtype=np.float32)

@@ -201,19 +201,20 @@ def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: 
     static = ~dynamic
     colours = height_colours(np.clip(z, lo, hi), (float(lo), float(hi)))
     kept = np.flatnonzero(static)
-    kept_pixel, which = _top_pixels(points[kept, 0], points[kept, 1], z[kept], extent, shape)
-    for ax, name in ((before, "before"), (after, "after")):
-        image = np.ones((shape[0] * shape[1], 4))
-        image[:, 3] = 0.0  # transparent where no point lies
-        image[kept_pixel, :3] = colours[kept[which], :3]
-        image[kept_pixel, 3] = 1.0
-        if name == "before" and dynamic.any():  # the removed ones in red, over everything, 2 x 2 pixels
-            gone = np.flatnonzero(dynamic)
-            pixel, _ = _top_pixels(points[gone, 0], points[gone, 1], z[gone], extent, shape)
-            for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
-                r, cl = pixel // shape[1] + dr, pixel % shape[1] + dc
-                ok = (r < shape[0]) & (cl < shape[1])
-                image[r[ok] * shape[1] + cl[ok]] = (1.0, 0.0, 0.0, 1.0)
+    pixel, which = _top_pixels(points[kept, 0], points[kept, 1], z[kept], extent, shape)
+    after_image = np.ones((shape[0] * shape[1], 4))
+    after_image[:, 3] = 0.0  # transparent where no point lies
+    after_image[pixel, :3] = colours[kept[which], :3]
+    after_image[pixel, 3] = 1.0
+    before_image = after_image.copy()
+    if dynamic.any():  # the removed ones in red, over everything, 2 x 2 pixels
+        gone = np.flatnonzero(dynamic)
+        pixel, _ = _top_pixels(points[gone, 0], points[gone, 1], z[gone], extent, shape)
+        for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
+            r, cl = pixel // shape[1] + dr, pixel % shape[1] + dc
+            ok = (r < shape[0]) & (cl < shape[1])
+            before_image[r[ok] * shape[1] + cl[ok]] = (1.0, 0.0, 0.0, 1.0)
+    for ax, name, image in ((before, "before", before_image), (after, "after", after_image)):
         ax.imshow(image.reshape(shape[0], shape[1], 4), origin="lower", extent=extent, interpolation="nearest",
                   aspect="equal")
         ax.set_xlabel(f"{'xyz'[u]} (m)")

@@ -5,7 +5,7 @@ bits = index of the node's first child block (0 = no children; block 0 holds the
 are the 8 consecutive words of a block. uint16 words give 12 index bits (4096 blocks, 64 KiB: the
 paper's pool); uint32 words give 28 bits for larger pools.
 
-Packed finest level (the grown pool): the 8 finest voxels under a node of depth `depth - 1` are
+Packed finest level (32-bit pools): the 8 finest voxels under a node of depth `depth - 1` are
 one uint32 of a second pool, `leaves`, 4 bits a voxel (voxel j in bits 4j..4j+3), and that
 node's index bits point there (leaf block 0 is never used). 76-81 % of a surface map's blocks
 are at the finest level: 4 bytes instead of 32 each.

@@ -27,6 +27,16 @@ LEVEL_STEP_LOG = 0.4054651  # log-odds of one level: OctoMap's miss
 MAX_BLOCKS = 1 << 28  # 32-bit words hold 28 bits of block index
 
 
+def _doubled(words: np.ndarray, free: np.ndarray, per_block: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """A pool of `per_block` words a block and its free list, with twice the blocks."""
+    blocks = min(2 * free.shape[0], MAX_BLOCKS)
+    if blocks == free.shape[0]:
+        raise ParameterError(f"tiny map: {what} would need more than {MAX_BLOCKS} blocks")
+    more = blocks - free.shape[0]
+    return (np.concatenate([words, np.zeros(more * per_block, dtype=words.dtype)]),
+            np.concatenate([free, np.zeros(more, dtype=np.int64)]))
+
+
 class TinyMap:
     name = "tiny"
 
@@ -69,19 +79,11 @@ class TinyMap:
     def _grow(self) -> None:
         """Double whichever pool is full (the kernel stopped for want of a block)."""
         if self.pack and self.meta[K.T_LEAF_FREE_TOP] == 0 and self.meta[K.T_LEAF_NEXT] >= self.meta[K.T_LEAF_BLOCKS]:
-            blocks = min(2 * self.finest.shape[0], MAX_BLOCKS)
-            if blocks == self.finest.shape[0]:
-                raise ParameterError(f"tiny map: the finest level would need more than {MAX_BLOCKS} blocks")
-            self.finest = np.concatenate([self.finest, np.zeros(blocks - self.finest.shape[0], dtype=np.uint32)])
-            self.finest_free = np.concatenate([self.finest_free, np.zeros(blocks - self.finest_free.shape[0], dtype=np.int64)])
-            self.meta[K.T_LEAF_BLOCKS] = blocks
-            return
-        blocks = min(2 * self.pool_blocks, MAX_BLOCKS)
-        if blocks == self.pool_blocks:
-            raise ParameterError(f"tiny map: the pool would need more than {MAX_BLOCKS} blocks")
-        self.pool = np.concatenate([self.pool, np.zeros((blocks - self.pool_blocks) * 8, dtype=self.pool.dtype)])
-        self.free = np.concatenate([self.free, np.zeros(blocks - self.free.shape[0], dtype=np.int64)])
-        self.meta[K.T_BLOCKS] = blocks
+            self.finest, self.finest_free = _doubled(self.finest, self.finest_free, 1, "the finest level")
+            self.meta[K.T_LEAF_BLOCKS] = self.finest_free.shape[0]
+        else:
+            self.pool, self.free = _doubled(self.pool, self.free, 8, "the pool")
+            self.meta[K.T_BLOCKS] = self.free.shape[0]
 
     # -- MapBackend -------------------------------------------------------------------------
     def warm_up(self) -> None:
