@@ -169,6 +169,38 @@ def test_every_scan_equals_brute_force(kw):
             assert len(m.occupied_codes()) <= kw["n_lim"]
 
 
+def test_a_box_that_leaves_deflates_as_the_brute_force_does():
+    """Occupied voxels that misses turn unknown deflate in the scan's inflation step while the
+    wall they hid becomes occupied and inflates (that step applies several voxels at once)."""
+    g = np.arange(-0.6, 0.61, 0.05)
+    yy, zz = [a.ravel() for a in np.meshgrid(g, g)]
+    wall = np.stack([np.full(yy.size, 3.02), yy, zz], axis=1).astype(F32)
+    shadow = (np.abs(yy) < 0.3) & (np.abs(zz) < 0.3)
+    box = wall[shadow] * F32(0.5)  # at x = 1.51, hiding the wall's middle
+    origin = np.array([0.01, 0.02, 0.03], F32)
+    scans = [Scan(np.concatenate([box, wall[~shadow]]), origin, i) for i in range(2)]
+    # the box has gone: the rays reach the wall, which grows by a strip a scan (new voxels each time)
+    for i in range(6):
+        strip = wall[np.abs(zz - 0.6) < 0.01] + np.array([0, 0, 0.1 * (i + 1)], F32)
+        scans.append(Scan(np.concatenate([wall, strip]), origin, 2 + i))
+    m = HashVoxelMap(MapParams(0.1), S, n_lim=-1, d_inf=0.2)
+    ref = ReferenceMap(0.1, n_lim=-1, d_inf=0.2)
+    box_keys = as_keys(morton_encode(np.floor(box.astype(np.float64) / 0.1).astype(np.int64) + 32768))
+    mixed = False
+    for scan in scans[:2]:
+        m.integrate(scan)
+        ref.integrate(scan.points, scan.origin)
+    for scan in scans[2:]:
+        before = as_keys(m.occupied_codes())
+        m.integrate(scan)
+        ref.integrate(scan.points, scan.origin)
+        check(m, ref)
+        after, held = as_keys(m.occupied_codes()), as_keys(m.leaves().codes)
+        mixed |= bool(((before & box_keys) - after) & held) and bool(after - before)
+    assert mixed  # in one scan a box voxel turned unknown (kept in the map) while others became occupied
+    assert not as_keys(m.occupied_codes()) & box_keys
+
+
 def test_parameter_schedule_takes_effect_mid_stream():
     schedule = [(3, "n_lim", 40), (4, "d_inf", 0.3), (5, "p_init", 0.7), (6, "d_in", 2.0)]
     m = HashVoxelMap(MapParams(0.1), S, n_lim=-1, d_inf=0.1, schedule=schedule)

@@ -495,34 +495,29 @@ def _list_alloc(size, ipool, imeta, radius):
     return b
 
 
-@njit(cache=True)
-def _inflate_sphere(r, radius, offsets, offset_start, R, free, meta, tab, ipool, imeta, codes):
-    """Add 1 to the inflation count of every voxel within `radius` voxels of r (creating
-    inflated-only records as needed) and keep their record numbers: r's look-up table of what
-    it inflated (the paper's T_inf), so that removal needs no hash look-up.
-
-    Memory latency bounds this loop (random table slots and records), so it first requests
-    the sphere's home slots, then the records they name, with prefetches: the cache misses
-    overlap instead of following one another, and the look-ups that follow hit the cache.
-    `codes` is scratch room for the sphere's Morton codes (one per row of `offsets`)."""
+@njit(cache=True, inline="always")
+def _sphere_codes(r, radius, offsets, offset_start, R, codes):
+    """The Morton codes of the voxels within `radius` voxels of record r's voxel (inside the key
+    range) into `codes`; returns their count."""
     code = R[r].code
     x = compact16(code)
     y = compact16(code >> 1)
     z = compact16(code >> 2)
-    lo, hi = offset_start[radius], offset_start[radius + 1]
-    mask = tab.shape[0] - 1
     m = 0
-    for j in range(lo, hi):
+    for j in range(offset_start[radius], offset_start[radius + 1]):
         c = _sphere_code(x, y, z, offsets, j)
         if c >= 0:
             codes[m] = c
             m += 1
-            prefetch(tab, _slot(c, mask))
-    for j in range(m):
-        t = tab[_slot(codes[j], mask)]
-        if t >= 0:
-            prefetch(R, t)
-    block = _list_alloc(hi - lo, ipool, imeta, radius)
+    return m
+
+
+@njit(cache=True, inline="always")
+def _inflate_cells(r, radius, codes, m, offset_start, R, free, meta, tab, ipool, imeta):
+    """Add 1 to the inflation count of the m voxels `codes`, r's sphere of `radius` (creating
+    inflated-only records as needed), and keep their record numbers: r's look-up table of what
+    it inflated (the paper's T_inf), so that removal needs no hash look-up."""
+    block = _list_alloc(offset_start[radius + 1] - offset_start[radius], ipool, imeta, radius)
     for j in range(m):
         c = codes[j]
         t = find(tab, R, c)
@@ -535,6 +530,26 @@ def _inflate_sphere(r, radius, offsets, offset_start, R, free, meta, tab, ipool,
         ipool[block + 1 + j] = t
     ipool[block] = m
     R[r].ilist = block
+
+
+@njit(cache=True)
+def _inflate_sphere(r, radius, offsets, offset_start, R, free, meta, tab, ipool, imeta, codes):
+    """Inflate the sphere of `radius` round r (_inflate_cells), one voxel at a time (a snapshot's
+    load; a scan's update pipelines several voxels: inflate()).
+
+    Memory latency bounds this loop (random table slots and records), so it first requests
+    the sphere's home slots, then the records they name, with prefetches: the cache misses
+    overlap instead of following one another, and the look-ups that follow hit the cache.
+    `codes` is scratch room for the sphere's Morton codes (one per row of `offsets`)."""
+    m = _sphere_codes(r, radius, offsets, offset_start, R, codes)
+    mask = tab.shape[0] - 1
+    for j in range(m):
+        prefetch(tab, _slot(codes[j], mask))
+    for j in range(m):
+        t = tab[_slot(codes[j], mask)]
+        if t >= 0:
+            prefetch(R, t)
+    _inflate_cells(r, radius, codes, m, offset_start, R, free, meta, tab, ipool, imeta)
 
 
 @njit(cache=True)
@@ -563,9 +578,17 @@ def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, o
             R, free, meta, tab, ipool, imeta):
     """Alg. 2: occupancy-changed voxels within inf_range of the sensor (re)inflate: a voxel that
     became occupied inflates the sphere of the current radius (remembered per voxel), one that
-    stopped being occupied removes exactly the sphere it added. Returns voxels processed."""
-    codes = np.empty(offsets.shape[0], dtype=np.int64)
-    done = 0
+    stopped being occupied removes exactly the sphere it added. Returns voxels processed.
+
+    A software pipeline over those voxels (see _inflate_sphere): while voxel i is applied, the
+    records in the sphere's table slots of voxel i + 1 and the slots of voxel i + 2 are on their
+    way (a deflating voxel: its look-up table, then the records it names). Requests only: what
+    is applied, and in which order, is what applying one voxel after another does."""
+    # which voxels change their inflation, and which way: record + 1 inflates, -(record + 1)
+    # deflates. Decided before any is applied: they are all in the occupancy map, so applying
+    # one never drops or changes another's record.
+    work = np.empty(n_changed, np.int64)
+    k = 0
     for i in range(n_changed):
         r = changed[i]
         state = R[r].state
@@ -579,14 +602,47 @@ def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, o
             continue
         radius = R[r].radius
         if state == 1 and radius < 0:
-            R[r].radius = radius_now
-            _inflate_sphere(r, radius_now, offsets, offset_start, R, free, meta, tab, ipool, imeta, codes)
-            done += 1
+            work[k] = r + 1
+            k += 1
         elif state != 1 and radius >= 0:
-            _deflate(r, R, free, meta, tab, ipool, imeta)
-            R[r].radius = -1
-            done += 1
-    return done
+            work[k] = -(r + 1)
+            k += 1
+    size = offset_start[radius_now + 1] - offset_start[radius_now]
+    codes = np.empty((3, size), np.int64)  # the sphere codes of the voxels in flight, row i % 3
+    counts = np.zeros(3, np.int64)
+    mask = tab.shape[0] - 1
+    for i in range(-2, k):
+        if i + 2 < k:  # two ahead: the table slots
+            w = work[i + 2]
+            if w > 0:
+                row = (i + 2) % 3
+                counts[row] = _sphere_codes(w - 1, radius_now, offsets, offset_start, R, codes[row])
+                for j in range(counts[row]):
+                    prefetch(tab, _slot(codes[row, j], mask))
+            else:
+                prefetch(ipool, R[-w - 1].ilist)
+        if 0 <= i + 1 < k:  # one ahead: the records
+            w = work[i + 1]
+            if w > 0:
+                row = (i + 1) % 3
+                for j in range(counts[row]):
+                    t = tab[_slot(codes[row, j], mask)]
+                    if t >= 0:
+                        prefetch(R, t)
+            else:
+                block = R[-w - 1].ilist
+                for j in range(1, ipool[block] + 1):
+                    prefetch(R, ipool[block + j])
+        if i >= 0:
+            w = work[i]
+            if w > 0:
+                R[w - 1].radius = radius_now
+                _inflate_cells(w - 1, radius_now, codes[i % 3], counts[i % 3], offset_start, R, free, meta, tab,
+                               ipool, imeta)
+            else:
+                _deflate(-w - 1, R, free, meta, tab, ipool, imeta)
+                R[-w - 1].radius = -1
+    return k
 
 
 @njit(cache=True)
