@@ -7,6 +7,7 @@ import numpy as np
 from numba import njit
 
 from voxtool.kernels.morton import compact16, morton3
+from voxtool.kernels.raycast import lowest_bit
 
 _HASH_MULT = np.int64(-7046029254386353131)  # 0x9E3779B97F4A7C15 as int64 (Fibonacci hashing)
 
@@ -347,28 +348,26 @@ def seen_whole(keys, bits, point_keys, point_bits, stop_keys, stop_bits, cube, s
                 _rows_around(keys, brick, crossed_rows)
                 _rows_around(stop_keys, brick, stop_rows)
                 looked = True
-            k = 0
             while x != 0:
-                if x & 1:
-                    p = w * 64 + k
-                    whole = True
-                    for j in range(cube.shape[1]):
-                        e = cube[p, j]
-                        nb = e >> 9
-                        inner = e & 511
-                        word = inner >> 6
-                        known = np.int64(0)
-                        if crossed_rows[nb] >= 0:
-                            known |= bits[crossed_rows[nb], word]
-                        if stop_rows[nb] >= 0:
-                            known |= stop_bits[stop_rows[nb], word]
-                        if (known >> (inner & 63)) & 1 == 0:
-                            whole = False
-                            break
-                    if whole:
-                        out[r, w] |= np.int64(1) << k
-                x = (x >> 1) & np.int64(0x7FFFFFFFFFFFFFFF)  # logical shift: bit 63 is a voxel too
-                k += 1
+                k = lowest_bit(x)
+                x &= x - 1
+                p = w * 64 + k
+                whole = True
+                for j in range(cube.shape[1]):
+                    e = cube[p, j]
+                    nb = e >> 9
+                    inner = e & 511
+                    word = inner >> 6
+                    known = np.int64(0)
+                    if crossed_rows[nb] >= 0:
+                        known |= bits[crossed_rows[nb], word]
+                    if stop_rows[nb] >= 0:
+                        known |= stop_bits[stop_rows[nb], word]
+                    if (known >> (inner & 63)) & 1 == 0:
+                        whole = False
+                        break
+                if whole:
+                    out[r, w] |= np.int64(1) << k
 
 
 # the 26 neighbours of a voxel, z slowest; the last 13 come after it (the others see it): a
