@@ -158,7 +158,7 @@ CLEAN_VIEWS = {"top": (0, 1, 2), "front": (0, 2, 1), "side": (1, 2, 0)}  # (hori
 CLEAN_RASTER = 520  # pixels along the longer side of a panel: about its width on the 120-dpi page
 
 
-def _top_pixels(u: np.ndarray, w: np.ndarray, depth: np.ndarray, extent, shape) -> tuple[np.ndarray, np.ndarray]:
+def _nearest_pixels(u: np.ndarray, w: np.ndarray, depth: np.ndarray, extent, shape) -> tuple[np.ndarray, np.ndarray]:
     """For points (u, w) over `extent` (u0, u1, w0, w1) in a raster of `shape` (rows, columns):
     each lit pixel (flat index) and the point it shows, the one of greatest `depth` (nearest
     the viewer), as a scatter plot drawn in that order would."""
@@ -201,7 +201,7 @@ def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: 
     static = ~dynamic
     colours = height_colours(np.clip(z, lo, hi), (float(lo), float(hi)))
     kept = np.flatnonzero(static)
-    pixel, which = _top_pixels(points[kept, 0], points[kept, 1], z[kept], extent, shape)
+    pixel, which = _nearest_pixels(points[kept, 0], points[kept, 1], z[kept], extent, shape)
     after_image = np.ones((shape[0] * shape[1], 4))
     after_image[:, 3] = 0.0  # transparent where no point lies
     after_image[pixel, :3] = colours[kept[which], :3]
@@ -209,7 +209,7 @@ def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: 
     before_image = after_image.copy()
     if dynamic.any():  # the removed ones in red, over everything, 2 x 2 pixels
         gone = np.flatnonzero(dynamic)
-        pixel, _ = _top_pixels(points[gone, 0], points[gone, 1], z[gone], extent, shape)
+        pixel, _ = _nearest_pixels(points[gone, 0], points[gone, 1], z[gone], extent, shape)
         for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
             r, cl = pixel // shape[1] + dr, pixel % shape[1] + dc
             ok = (r < shape[0]) & (cl < shape[1])

@@ -114,15 +114,15 @@ def insert_movers(points: np.ndarray, origin: np.ndarray, t: float, boxes: list[
     """A real scan with moving boxes ray-traced into it: every ray (origin -> its real return)
     is kept, and where a box at time t lies in front of the return the ray stops at the box's
     surface. Returns (the points, float32; which of them lie on a box: the dynamic truth)."""
-    o = np.asarray(origin, dtype=np.float64)
-    v = np.asarray(points, dtype=np.float64) - o
-    length = np.linalg.norm(v, axis=1)
-    dirs = v / np.where(length > 0, length, 1.0)[:, None]
     if not boxes or points.shape[0] == 0:
         return np.asarray(points, dtype=np.float32), np.zeros(points.shape[0], dtype=bool)
+    o = np.asarray(origin, dtype=np.float64)
+    out = np.array(points, dtype=np.float64)  # a copy: the returns the boxes hide are moved
+    v = out - o
+    length = np.linalg.norm(v, axis=1)
+    dirs = v / np.where(length > 0, length, 1.0)[:, None]
     entry, _ = box_entries(o, dirs, boxes, t)
     hit = entry < length
-    out = np.asarray(points, dtype=np.float64).copy()
     out[hit] = o + dirs[hit] * entry[hit, None]
     return out.astype(np.float32), hit
 
