@@ -9,12 +9,12 @@ writes bench-results/query.json.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from report import write_report
 
 DATASETS = [("kaist03", 0.2), ("quick_shack", 0.1), ("norlab", 0.2)]
 
@@ -71,15 +71,13 @@ def main() -> None:
                            octomap_points_per_s=round(len(few) / octo_s),
                            differing_answers=int((theirs != states[: len(few)]).sum()))
             rows.append(row)
-    print(f"{'dataset':<12} {'points':>10} {'voxtool s':>10} {'voxtool pts/s':>14} {'OctoMap pts/s':>14} "
-          f"{'speed-up':>9} {'differ':>7}")
     for r in rows:
         octo = r.get("octomap_points_per_s")
-        print(f"{r['dataset']:<12} {r['points']:>10,} {r['voxtool_s']:>10.3f} {r['voxtool_points_per_s']:>14,} "
-              f"{octo or 0:>14,} {r['voxtool_points_per_s'] / octo if octo else 0:>8.1f}x "
-              f"{r.get('differing_answers', '-'):>7}")
-    Path(args.out).parent.mkdir(exist_ok=True)
-    Path(args.out).write_text(json.dumps({"rows": rows}, indent=1))
+        r["speed_up"] = round(r["voxtool_points_per_s"] / octo, 1) if octo else "-"
+        r.setdefault("octomap_points_per_s", "-")
+        r.setdefault("differing_answers", "-")
+    write_report(rows, ["dataset", "points", "voxtool_s", "voxtool_points_per_s", "octomap_points_per_s", "speed_up",
+                        "differing_answers"], args.out)
 
 
 if __name__ == "__main__":

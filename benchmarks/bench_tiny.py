@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from report import write_report
 
 DATASETS = [("quick_shack", 0.1, 51.2), ("norlab", 0.2, 819.2), ("kaist03", 0.2, 819.2)]
 
@@ -86,16 +87,12 @@ def main() -> None:
                    merged_map_identical=bool(np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)))
         rows.append(row)
         print(json.dumps(row))
-    print(f"\n{'dataset':12} {'res':>5} {'TinyOctoMap':>12} {'octree':>12} {'OctoMap':>12} {'below OctoMap':>14} "
-          f"{'inner blocks':>12} {'finest blocks':>13}")
-    for r in rows:
-        om = r.get("octomap_memory_usage")
-        print(f"{r['dataset']:12} {r['resolution']:>5} {r['tiny_bytes_used'] / 1e6:>9.2f} MB {r['octree_bytes_used'] / 1e6:>9.2f} MB "
-              f"{(om or 0) / 1e6:>9.2f} MB {r.get('tiny_below_octomap_pct', float('nan')):>13.1f}% "
-              f"{r['tiny_blocks']:>12,} {r['tiny_finest_blocks']:>13,}")
-    Path(args.out).parent.mkdir(exist_ok=True)
-    Path(args.out).write_text(json.dumps(rows, indent=2))
-
+    for r in rows:  # the table's figures in MB, and "-" where OctoMap did not run
+        r.update(tiny_mb=round(r["tiny_bytes_used"] / 1e6, 2), octree_mb=round(r["octree_bytes_used"] / 1e6, 2),
+                 octomap_mb=round(r["octomap_memory_usage"] / 1e6, 2) if "octomap_memory_usage" in r else "-")
+        r.setdefault("tiny_below_octomap_pct", "-")
+    write_report(rows, ["dataset", "resolution", "tiny_mb", "octree_mb", "octomap_mb", "tiny_below_octomap_pct",
+                        "tiny_blocks", "tiny_finest_blocks"], args.out)
 
 
 if __name__ == "__main__":
