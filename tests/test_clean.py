@@ -144,10 +144,9 @@ def test_void_is_where_one_scan_knew_the_whole_cube(pose_error):
     """Brute force over sets of keys: a crossed voxel holding a point is void when every voxel
     of its pose_error cube was crossed or stopped at by the same scan."""
     from voxtool.keys import morton_decode, morton_encode
-
-    scan = next(iter(street(1, lidar=Lidar(beams=16, columns=180)).scans()))
     from voxtool.sources.scan import Scan
 
+    scan = next(iter(street(1, lidar=Lidar(beams=16, columns=180)).scans()))
     vm = VoidMap(CleanParams(resolution=0.25, sensor_noise=0.3, pose_error=pose_error), threads=2)
     prepared = vm.prepare(Scan(scan[0], scan[1].astype(np.float32)))
     parts = vm.evidence(prepared)
@@ -387,7 +386,7 @@ def test_movers_ray_traced_into_real_returns():
     points = np.array([[10.0, 0.0, 1.5],   # straight through the box at x 4..6: stops at x = 4
                        [3.0, 0.0, 1.5],    # its return lies in front of the box
                        [10.0, 5.0, 1.5],   # passes beside it
-                       [10.0, 0.0, 0.0]], dtype=np.float32)  # slopes under the box's bottom at 1.0?
+                       [10.0, 0.0, 0.0]], dtype=np.float32)  # passes under it (z 0.9 to 0.6 at x 4 to 6)
     box = Box((4.0, -1.0, 1.0), (6.0, 1.0, 2.0), (1.0, 0.0, 0.0))
     out, dynamic = insert_movers(points, origin, 0.0, [box])
     assert dynamic.tolist() == [True, False, False, False]
