@@ -554,11 +554,19 @@ def _inflate_sphere(r, radius, offsets, offset_start, R, free, meta, tab, ipool,
 
 @njit(cache=True)
 def _deflate(r, R, free, meta, tab, ipool, imeta):
+    """Undo r's inflation through its look-up table (_deflate_cells), its records requested
+    first (see _inflate_sphere)."""
+    block = R[r].ilist
+    for j in range(1, ipool[block] + 1):
+        prefetch(R, ipool[block + j])
+    _deflate_cells(r, R, free, meta, tab, ipool, imeta)
+
+
+@njit(cache=True, inline="always")
+def _deflate_cells(r, R, free, meta, tab, ipool, imeta):
     """Undo r's inflation through its look-up table; inflated-only voxels left uninflated go."""
     block = R[r].ilist
     n = ipool[block]
-    for j in range(1, n + 1):  # request the records first (see _inflate_sphere)
-        prefetch(R, ipool[block + j])
     for j in range(1, n + 1):
         t = ipool[block + j]
         v = R[t]
@@ -640,7 +648,7 @@ def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, o
                 _inflate_cells(w - 1, radius_now, codes[i % 3], counts[i % 3], offset_start, R, free, meta, tab,
                                ipool, imeta)
             else:
-                _deflate(-w - 1, R, free, meta, tab, ipool, imeta)
+                _deflate_cells(-w - 1, R, free, meta, tab, ipool, imeta)  # its records requested one voxel ago
                 R[-w - 1].radius = -1
     return k
 
