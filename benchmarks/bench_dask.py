@@ -66,7 +66,7 @@ def main() -> None:
     ap.add_argument("--large", action="store_true",
                     help="also kaist03 at 0.1 m (a 0.9 GB map: where per-worker memory is mostly map, not runtime)")
     args = ap.parse_args()
-    data = Path(args.data)
+    data = Path(args.data).resolve()  # the fleet links to its datasets from a temporary folder
     voxtool = [sys.executable, "-m", "voxtool.cli"]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -4,6 +4,7 @@ the shared frames. Rows: n_lim 50,000 or unlimited, inflation range (the paper's
 column, `inf_range` here) 8 m as in the paper's rows a-c, or unlimited.
 
     python benchmarks/bench_hashmap.py [--data ../shared/data] [--out bench-results/hashmap.json] [--repeat 3]
+    python benchmarks/bench_hashmap.py --scaling 1 2 4 8 16 [--repeat 3]   # row a against threads only
 
 Last, row a runs as whole `voxtool build` commands idle and beside one busy process, with the
 default threads and with --threads 1 (under_load): the default must not be the slower.
@@ -28,6 +29,8 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from voxtool.parallel import usable_cores
 
 SETUPS = [(50_000, 8.0), (50_000, -1.0), (-1, 8.0), (-1, -1.0)]
 
@@ -103,14 +106,14 @@ def reference() -> dict:
     return {"compute_ms": round(1e3 * compute, 2), "memory_ns": round(1e9 * memory, 1)}
 
 
-def scan_by_scan(scans: list, n_lim: int, inf_range: float) -> dict:
+def scan_by_scan(scans: list, n_lim: int, inf_range: float, threads: int = 0) -> dict:
     """Per-scan latency as a real-time node sees it: each scan already in memory, nothing else
     running (`voxtool build` also reads each scan from disk and, with --share, writes the shared
-    frames after it)."""
+    frames after it). `threads` as --threads (0: the usable cores)."""
     from voxtool.config import MapParams, SensorModel
     from voxtool.maps.hashmap import HashVoxelMap
 
-    m = HashVoxelMap(MapParams(0.1), SensorModel(), n_lim=n_lim, d_inf=0.2, inf_range=inf_range)
+    m = HashVoxelMap(MapParams(0.1), SensorModel(), n_lim=n_lim, d_inf=0.2, inf_range=inf_range, threads=threads)
     m.warm_up()
     for scan in scans:
         m.integrate(scan)
@@ -218,16 +221,46 @@ def under_load(src: Path, tmp: str) -> list[dict]:
     return rows
 
 
+def scaling(scans: list, threads: list[int], repeat: int) -> list[dict]:
+    """Row a scan by scan at each thread count (the ray casting splits its rays over them; the
+    rest of a scan's update runs on one thread): the median of `repeat` runs' medians."""
+    rows = []
+    for t in threads:
+        runs = sorted((scan_by_scan(scans, 50_000, 8.0, t) for _ in range(max(repeat, 1))),
+                      key=lambda r: r["t_tot_ms"]["median"])
+        mid = runs[len(runs) // 2]
+        rows.append({"threads": t, "median_ms": mid["t_tot_ms"]["median"], "p95_ms": mid["t_tot_ms"]["p95"],
+                     "median_runs_ms": [r["t_tot_ms"]["median"] for r in runs], "t_occ_ms": mid["t_occ_ms"],
+                     "t_inf_ms": mid["t_inf_ms"], "t_m_ms": mid["t_m_ms"],
+                     "slowest_5pct_median_ms": mid["slowest_5pct_median_ms"]})
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
     ap.add_argument("--out", default="bench-results/hashmap.json")
     ap.add_argument("--repeat", type=int, default=1, help="scan-by-scan runs per row (median and range printed)")
+    ap.add_argument("--scaling", type=int, nargs="+", metavar="THREADS",
+                    help="only row a, scan by scan, at each of these thread counts")
     args = ap.parse_args()
     src = Path(args.data) / "quick_shack" / "pcd"
     from voxtool.sources import SourceOptions, open_source
 
     scans = list(open_source(src, SourceOptions()).scans)
+    if args.scaling:
+        rows = scaling(scans, args.scaling, args.repeat)
+        print(f"row a scan by scan (n_lim 50 k, 8 m), usable cores {usable_cores()}:")
+        print(f"{'threads':>7} {'median':>7} {'p95':>6} {'t_occ':>6} {'t_inf':>6} {'t_m':>6} {'slow5% t_occ':>12} "
+              f"{'t_inf':>6} {'t_m':>6}  medians of the runs")
+        for r in rows:
+            s = r["slowest_5pct_median_ms"]
+            print(f"{r['threads']:>7} {r['median_ms']:>7.2f} {r['p95_ms']:>6.2f} {r['t_occ_ms']:>6.2f} "
+                  f"{r['t_inf_ms']:>6.2f} {r['t_m_ms']:>6.2f} {s['t_occ_ms']:>12.2f} {s['t_inf_ms']:>6.2f} "
+                  f"{s['t_m_ms']:>6.2f}  {r['median_runs_ms']}")
+        Path(args.out).parent.mkdir(exist_ok=True)
+        Path(args.out).write_text(json.dumps({"rows": rows, "usable_cores": usable_cores()}, indent=2))
+        return
     rows = []
     print("latency ms: 'build' = in the voxtool build pipeline (reading, --share writing between scans), "
           "'scan' = scan by scan, nothing else running; t_occ / t_inf / t_m are scan-by-scan means")

@@ -296,6 +296,32 @@ def test_filtered_ray_casting_keeps_exactly_the_updates_that_matter(max_range, s
         assert m._set_size > set_size
 
 
+@pytest.mark.parametrize("parts", [3, 5, 16])
+def test_rays_cast_in_many_runs_merge_to_the_one_run_updates(parts):
+    """A machine with more cores casts a scan in more runs of rays (16 cores: 16 runs); this one
+    has two, so the kernel is called with more runs than threads here (prange shares them out).
+    Merging a third run once failed an assertion of numba's array analysis, on every machine
+    with more than two cores."""
+    from voxtool.kernels.raycast import balanced_cuts
+    from voxtool.maps.octree import SMALL_SCAN
+
+    m = HashVoxelMap(MapParams(0.1), S, n_lim=3000, d_inf=0.2, threads=1)
+    scans = world_scans(4, 2 * SMALL_SCAN, seed=41)
+    for scan in scans[:3]:
+        m.integrate(scan)
+    scan = m.prepare(scans[3]).scan
+    want, want_steps = m._trace(scan)  # one run: threads=1
+    rays = m._discretized(scan)
+    m._bufs = None
+    seen, slots, out, counts, merged, spare = m._cast_buffers(parts, m._set_size)
+    k = K.trace_parts(rays.points, balanced_cuts(rays.points, rays.origin, parts), rays.origin, 0.1, -1.0, m.bkeys,
+                      m.bmask, seen, slots, out, counts, merged, spare)
+    assert (counts[:, 0] > 0).all() and (want & 1 == 0).sum() > 100  # every run and the map took part
+    np.testing.assert_array_equal(merged[:k], want)
+    assert counts[:, 1].sum() == want_steps
+    assert (seen == K.EMPTY).all()  # the sets are left empty for the next scan
+
+
 @pytest.mark.parametrize("cores", [2, 8])
 def test_schedule_in_the_build_pipeline_equals_scan_by_scan(tmp_path, monkeypatch, cores):
     """In `build` with a third core free, the next scan is prepared on another thread while this

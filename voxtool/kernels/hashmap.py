@@ -363,12 +363,21 @@ def trace_parts(points, cuts, origin, resolution, max_range, bkeys, bmask, seen,
                                  slots[w], out[w])
         counts[w, 0] = n
         counts[w, 1] = steps
+    return merge_runs(out, counts, merged, spare)
+
+
+@njit(cache=True, nogil=True)
+def merge_runs(out, counts, merged, spare):
+    """trace_parts' runs (out[w, :counts[w, 0]]) merged into `merged`, one after another;
+    -1 if a run overflowed. Apart from the parallel kernel: there numba's array analysis took
+    a slice's length in this loop for the first run's and asserted at the third run."""
+    parts = counts.shape[0]
     for w in range(parts):
         if counts[w, 0] < 0:
             return -1
     n = counts[0, 0]
     merged[:n] = out[0, :n]
-    for w in range(1, parts):  # one run after another into the merged list
+    for w in range(1, parts):
         spare[:n] = merged[:n]
         n = merge_updates(spare[:n], out[w, :counts[w, 0]], merged)
     return n

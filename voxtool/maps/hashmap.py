@@ -223,6 +223,16 @@ class HashVoxelMap:
         k = K.discretize(scan.points, self.params.resolution, *self._cell_set, centres)
         return Scan(centres[:k], scan.origin, scan.index, scan.stamp_ns, scan.source)
 
+    def _cast_buffers(self, parts: int, size: int) -> tuple:
+        """The ray casting's de-duplicating sets (all EMPTY; the kernels leave them so) and
+        scratch, one row per run of rays, kept from scan to scan."""
+        if self._bufs is None or self._bufs[0].shape != (parts, size):
+            run = size // 2 + 1
+            self._bufs = (np.full((parts, size), K.EMPTY, dtype=np.int64), np.empty((parts, run), np.int64),
+                          np.empty((parts, run), np.int64), np.zeros((parts, 2), np.int64),
+                          np.empty(parts * run, np.int64), np.empty(parts * run, np.int64))
+        return self._bufs
+
     def _trace(self, scan: Scan) -> tuple[np.ndarray, int]:
         """The scan's Morton-sorted (code << 1 | hit) updates that can change this map: every
         endpoint voxel, and the passed-through voxels that may be in the occupancy map; each
@@ -238,13 +248,7 @@ class HashVoxelMap:
             parts = min(self.threads, numba.config.NUMBA_NUM_THREADS, max(1, n // RAYS_PER_PART))
             if n < SMALL_SCAN or not _Parallel.usable:  # one thread (a small scan: a launch costs more than it saves)
                 parts = 1
-            if self._bufs is None or self._bufs[0].shape != (parts, size):
-                # de-duplicating sets (all EMPTY; the kernels leave them so) and scratch, one row per run
-                run = size // 2 + 1
-                self._bufs = (np.full((parts, size), K.EMPTY, dtype=np.int64), np.empty((parts, run), np.int64),
-                              np.empty((parts, run), np.int64), np.zeros((parts, 2), np.int64),
-                              np.empty(parts * run, np.int64), np.empty(parts * run, np.int64))
-            seen, slots, out, counts, merged, spare = self._bufs
+            seen, slots, out, counts, merged, spare = self._cast_buffers(parts, size)
             if parts == 1:
                 k, steps = K.trace_present(scan.points, scan.origin, self.params.resolution, self.params.max_range,
                                            self.bkeys, self.bmask, seen[0], slots[0], out[0])
