@@ -243,14 +243,22 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1, help="scan-by-scan runs per row (median and range printed)")
     ap.add_argument("--scaling", type=int, nargs="+", metavar="THREADS",
                     help="only row a, scan by scan, at each of these thread counts")
+    ap.add_argument("--rays-per-part", type=int, help="--scaling: the fewest rays a thread casts (a what-if)")
     args = ap.parse_args()
+    if args.rays_per_part:
+        import voxtool.maps.hashmap
+
+        voxtool.maps.hashmap.RAYS_PER_PART = args.rays_per_part
     src = Path(args.data) / "quick_shack" / "pcd"
     from voxtool.sources import SourceOptions, open_source
 
     scans = list(open_source(src, SourceOptions()).scans)
     if args.scaling:
         rows = scaling(scans, args.scaling, args.repeat)
-        print(f"row a scan by scan (n_lim 50 k, 8 m), usable cores {usable_cores()}:")
+        from voxtool.maps import hashmap
+
+        print(f"row a scan by scan (n_lim 50 k, 8 m), usable cores {usable_cores()}, "
+              f"at least {hashmap.RAYS_PER_PART} rays a thread:")
         print(f"{'threads':>7} {'median':>7} {'p95':>6} {'t_occ':>6} {'t_inf':>6} {'t_m':>6} {'slow5% t_occ':>12} "
               f"{'t_inf':>6} {'t_m':>6}  medians of the runs")
         for r in rows:
@@ -259,7 +267,8 @@ def main() -> None:
                   f"{r['t_inf_ms']:>6.2f} {r['t_m_ms']:>6.2f} {s['t_occ_ms']:>12.2f} {s['t_inf_ms']:>6.2f} "
                   f"{s['t_m_ms']:>6.2f}  {r['median_runs_ms']}")
         Path(args.out).parent.mkdir(exist_ok=True)
-        Path(args.out).write_text(json.dumps({"rows": rows, "usable_cores": usable_cores()}, indent=2))
+        Path(args.out).write_text(json.dumps({"rows": rows, "usable_cores": usable_cores(),
+                                              "rays_per_part": hashmap.RAYS_PER_PART}, indent=2))
         return
     rows = []
     print("latency ms: 'build' = in the voxtool build pipeline (reading, --share writing between scans), "

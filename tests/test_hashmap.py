@@ -338,7 +338,8 @@ def test_schedule_in_the_build_pipeline_equals_scan_by_scan(tmp_path, monkeypatc
     monkeypatch.setattr(pipeline, "usable_cores", lambda: cores)
     src = scene_dir(tmp_path, n=8, seed=5)
     schedule = [(2, "n_lim", 150), (3, "d_in", 2.5), (5, "d_inf", 0.3), (6, "n_lim", 400)]
-    piped = HashVoxelMap(MapParams(0.1), S, n_lim=-1, d_inf=0.2, schedule=schedule)
+    # two threads as on a two-core machine, whatever this one has (a 16-core one failed the read-ahead check)
+    piped = HashVoxelMap(MapParams(0.1), S, n_lim=-1, d_inf=0.2, schedule=schedule, threads=2)
     prepare, threads = piped.prepare, set()
 
     def spy(scan):

@@ -368,18 +368,41 @@ def trace_parts(points, cuts, origin, resolution, max_range, bkeys, bmask, seen,
 
 @njit(cache=True, nogil=True)
 def merge_runs(out, counts, merged, spare):
-    """trace_parts' runs (out[w, :counts[w, 0]]) merged into `merged`, one after another;
-    -1 if a run overflowed. Apart from the parallel kernel: there numba's array analysis took
-    a slice's length in this loop for the first run's and asserted at the third run."""
+    """trace_parts' runs (out[w, :counts[w, 0]]) merged into `merged` pair by pair, round by
+    round (`spare` the other side of each round): log2(runs) passes over the updates where
+    merging run after run took one a run (16 runs: 16 passes). -1 if a run overflowed. Apart
+    from the parallel kernel: there numba's array analysis asserted wrongly on this loop."""
     parts = counts.shape[0]
     for w in range(parts):
         if counts[w, 0] < 0:
             return -1
-    n = counts[0, 0]
-    merged[:n] = out[0, :n]
-    for w in range(1, parts):
-        spare[:n] = merged[:n]
-        n = merge_updates(spare[:n], out[w, :counts[w, 0]], merged)
+    m = (parts + 1) // 2  # segments after the first round, out's rows into merged
+    starts = np.empty(m, np.int64)
+    lens = np.empty(m, np.int64)
+    off = 0
+    for i in range(m):
+        a = out[2 * i, :counts[2 * i, 0]]
+        b = out[2 * i + 1, :counts[2 * i + 1, 0]] if 2 * i + 1 < parts else out[2 * i, :0]
+        starts[i] = off
+        lens[i] = merge_updates(a, b, merged[off:])
+        off += a.shape[0] + b.shape[0]  # room for both: duplicates across runs only shrink it
+    src, dst = merged, spare
+    in_merged = True
+    while m > 1:
+        k = (m + 1) // 2
+        off = 0
+        for i in range(k):  # starts[i] is written after starts[2i] and starts[2i + 1] were read
+            s0, n0 = starts[2 * i], lens[2 * i]
+            s1, n1 = (starts[2 * i + 1], lens[2 * i + 1]) if 2 * i + 1 < m else (s0, 0)
+            starts[i] = off
+            lens[i] = merge_updates(src[s0:s0 + n0], src[s1:s1 + n1], dst[off:])
+            off += n0 + n1
+        m = k
+        src, dst = dst, src
+        in_merged = not in_merged
+    n = lens[0]
+    if not in_merged:  # the last round wrote spare (its first segment starts at 0)
+        merged[:n] = spare[:n]
     return n
 
 
