@@ -321,7 +321,7 @@ def test_scheduler_address_runs_on_a_cluster_started_by_dask_commands(tmp_path, 
     # addresses that are not addresses, and nobody listening (Dask retries until
     # VOXTOOL_CONNECT_TIMEOUT, 10 s by default), last: the Client that failed to connect closes
     # itself later, from the garbage collector, and must not meet another command's Client
-    monkeypatch.setenv("VOXTOOL_CONNECT_TIMEOUT", "3")
+    monkeypatch.setenv("VOXTOOL_CONNECT_TIMEOUT", "1")
     for address, exit_code in (("127.0.0.1", 2), ("nonsense://x:1", 2), ("tcp://127.0.0.1:9", 1)):
         code, _, err = cli("build", SAMPLE, "-o", tmp_path / "x.vxm", "--scheduler", address)
         assert code == exit_code and err.count("\n") == 1 and address in err, err
