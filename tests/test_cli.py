@@ -381,6 +381,24 @@ def test_an_integral_float_is_an_integer_option(tmp_path):
     assert read_snapshot(out).header["backend_params"]["n_lim"] == 2000
 
 
+def test_more_threads_than_cores_give_the_hash_maps_snapshot(tmp_path):
+    """The hash map casts in a numba parallel region, one run of rays per thread: a machine with
+    more cores casts in more runs, a path two cores never take (its merge once failed on every
+    machine with more than two). Six threads here (numba allows more than the cores) must write
+    the bytes one thread writes."""
+    from voxtool.io.snapshot import read_snapshot
+
+    one, six = tmp_path / "one.vxm", tmp_path / "six.vxm"
+    assert run("build", "--sample", "--backend", "hashmap", "--threads", "1", "-o", one, "--no-progress")[0] == 0
+    proc = subprocess.run([sys.executable, "-m", "voxtool.cli", "build", "--sample", "--backend", "hashmap",
+                           "--threads", "6", "-o", str(six), "--json", "--no-progress"], capture_output=True, text=True,
+                          env={**os.environ, "NUMBA_NUM_THREADS": "6"})
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["threads"] == 6
+    assert read_snapshot(one).arrays["leaf_codes"].size > 10_000
+    assert one.read_bytes() == six.read_bytes()
+
+
 def test_thread_counts_write_the_same_snapshot_and_one_core_means_one_thread(tmp_path):
     """--threads 1 and --threads 2 give byte-identical snapshots; run under an affinity mask of
     one core, the default uses that one core (nothing assumes a core count) and agrees too."""
