@@ -29,6 +29,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from report import write_report
 
 from voxtool.parallel import usable_cores
 
@@ -221,18 +222,24 @@ def under_load(src: Path, tmp: str) -> list[dict]:
     return rows
 
 
+def median_run(scans: list, n_lim: int, inf_range: float, repeat: int, threads: int = 0) -> tuple[dict, list]:
+    """scan_by_scan `repeat` times: the run with the median median, and each run's median, sorted."""
+    runs = sorted((scan_by_scan(scans, n_lim, inf_range, threads) for _ in range(max(repeat, 1))),
+                  key=lambda r: r["t_tot_ms"]["median"])
+    return runs[len(runs) // 2], [r["t_tot_ms"]["median"] for r in runs]
+
+
 def scaling(scans: list, threads: list[int], repeat: int) -> list[dict]:
     """Row a scan by scan at each thread count (the ray casting splits its rays over them; the
-    rest of a scan's update runs on one thread): the median of `repeat` runs' medians."""
+    rest of a scan's update runs on one thread), with the parts of its slowest 5 % of scans."""
     rows = []
     for t in threads:
-        runs = sorted((scan_by_scan(scans, 50_000, 8.0, t) for _ in range(max(repeat, 1))),
-                      key=lambda r: r["t_tot_ms"]["median"])
-        mid = runs[len(runs) // 2]
+        mid, medians = median_run(scans, 50_000, 8.0, repeat, t)
+        slow = mid["slowest_5pct_median_ms"]
         rows.append({"threads": t, "median_ms": mid["t_tot_ms"]["median"], "p95_ms": mid["t_tot_ms"]["p95"],
-                     "median_runs_ms": [r["t_tot_ms"]["median"] for r in runs], "t_occ_ms": mid["t_occ_ms"],
-                     "t_inf_ms": mid["t_inf_ms"], "t_m_ms": mid["t_m_ms"],
-                     "slowest_5pct_median_ms": mid["slowest_5pct_median_ms"]})
+                     "t_occ_ms": mid["t_occ_ms"], "t_inf_ms": mid["t_inf_ms"], "t_m_ms": mid["t_m_ms"],
+                     **{f"slowest_5pct_{k}": slow[k] for k in ("t_occ_ms", "t_inf_ms", "t_m_ms")},
+                     "median_runs_ms": medians})
     return rows
 
 
@@ -245,30 +252,19 @@ def main() -> None:
                     help="only row a, scan by scan, at each of these thread counts")
     ap.add_argument("--rays-per-part", type=int, help="--scaling: the fewest rays a thread casts (a what-if)")
     args = ap.parse_args()
-    if args.rays_per_part:
-        import voxtool.maps.hashmap
+    from voxtool.maps import hashmap
 
-        voxtool.maps.hashmap.RAYS_PER_PART = args.rays_per_part
+    if args.rays_per_part:
+        hashmap.RAYS_PER_PART = args.rays_per_part
     src = Path(args.data) / "quick_shack" / "pcd"
     from voxtool.sources import SourceOptions, open_source
 
     scans = list(open_source(src, SourceOptions()).scans)
     if args.scaling:
-        rows = scaling(scans, args.scaling, args.repeat)
-        from voxtool.maps import hashmap
-
         print(f"row a scan by scan (n_lim 50 k, 8 m), usable cores {usable_cores()}, "
-              f"at least {hashmap.RAYS_PER_PART} rays a thread:")
-        print(f"{'threads':>7} {'median':>7} {'p95':>6} {'t_occ':>6} {'t_inf':>6} {'t_m':>6} {'slow5% t_occ':>12} "
-              f"{'t_inf':>6} {'t_m':>6}  medians of the runs")
-        for r in rows:
-            s = r["slowest_5pct_median_ms"]
-            print(f"{r['threads']:>7} {r['median_ms']:>7.2f} {r['p95_ms']:>6.2f} {r['t_occ_ms']:>6.2f} "
-                  f"{r['t_inf_ms']:>6.2f} {r['t_m_ms']:>6.2f} {s['t_occ_ms']:>12.2f} {s['t_inf_ms']:>6.2f} "
-                  f"{s['t_m_ms']:>6.2f}  {r['median_runs_ms']}")
-        Path(args.out).parent.mkdir(exist_ok=True)
-        Path(args.out).write_text(json.dumps({"rows": rows, "usable_cores": usable_cores(),
-                                              "rays_per_part": hashmap.RAYS_PER_PART}, indent=2))
+              f"at least {hashmap.RAYS_PER_PART} rays a thread; ms:")
+        rows = scaling(scans, args.scaling, args.repeat)
+        write_report(rows, list(rows[0]), args.out, usable_cores=usable_cores(), rays_per_part=hashmap.RAYS_PER_PART)
         return
     rows = []
     print("latency ms: 'build' = in the voxtool build pipeline (reading, --share writing between scans), "
@@ -280,10 +276,8 @@ def main() -> None:
             share = Path(tmp) / f"share_{n_lim}_{inf_range}.mcap"
             row = run(src, n_lim, inf_range, share)
             row["reference"] = reference()
-            runs = sorted((scan_by_scan(scans, n_lim, inf_range) for _ in range(max(args.repeat, 1))),
-                          key=lambda r: r["t_tot_ms"]["median"])
-            row["scan_by_scan"] = runs[len(runs) // 2]  # the run with the median median
-            medians = row["scan_median_runs_ms"] = [r["t_tot_ms"]["median"] for r in runs]
+            row["scan_by_scan"], medians = median_run(scans, n_lim, inf_range, args.repeat)
+            row["scan_median_runs_ms"] = medians
             if n_lim < 0 and inf_range < 0:
                 row.update(relayed(src, share))
             rows.append(row)

@@ -312,7 +312,6 @@ def test_rays_cast_in_many_runs_merge_to_the_one_run_updates(parts):
     scan = m.prepare(scans[3]).scan
     want, want_steps = m._trace(scan)  # one run: threads=1
     rays = m._discretized(scan)
-    m._bufs = None
     seen, slots, out, counts, merged, spare = m._cast_buffers(parts, m._set_size)
     k = K.trace_parts(rays.points, balanced_cuts(rays.points, rays.origin, parts), rays.origin, 0.1, -1.0, m.bkeys,
                       m.bmask, seen, slots, out, counts, merged, spare)
