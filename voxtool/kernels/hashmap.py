@@ -1,10 +1,11 @@
 """Kernels of the `hashmap` backend (seed: voxel-mapping-hash-map-sharing.md, Alg. 1-3).
 
-A voxel is one 64-byte record (the paper's voxel object; its "pointers" are record numbers),
-so everything an update reads or writes about a voxel lies in one cache line. An
-open-addressing table of (Morton code, record) pairs, also one line per probe, finds records.
-The history buffer is a doubly linked list through the records' prev / next fields.
-States: 0 free, 1 occupied, 2 unknown; state -1 marks an unused record.
+A voxel of the occupancy map is one 64-byte record (the paper's voxel object; its "pointers"
+are record numbers), so everything an update reads or writes about it lies in one cache line.
+An open-addressing table of record numbers finds records. The history buffer is a doubly
+linked list through the records' prev / next fields. States: 0 free, 1 occupied, 2 unknown;
+state -1 marks an unused record. The inflation map is apart: 8x8x8 bricks of inflation counts
+(see new_inflation).
 """
 
 from __future__ import annotations
@@ -20,9 +21,9 @@ from voxtool.kernels.prefetch import prefetch
 from voxtool.kernels.raycast import _coord_key, ray_setup
 
 RECORD = np.dtype({
-    "names": ["code", "last", "prev", "next", "l", "inf", "radius", "hits", "misses", "state", "in_occ", "ilist"],
-    "formats": ["<i8", "<i8", "<i8", "<i8", "<f4", "<i4", "<i4", "<i4", "<i4", "i1", "u1", "<i8"],
-    "offsets": [0, 8, 16, 24, 32, 36, 40, 44, 48, 52, 53, 56],
+    "names": ["code", "last", "prev", "next", "l", "radius", "hits", "misses", "state"],
+    "formats": ["<i8", "<i8", "<i8", "<i8", "<f4", "<i4", "<i4", "<i4", "i1"],
+    "offsets": [0, 8, 16, 24, 32, 36, 40, 44, 48],
     "itemsize": 64,
 })
 EMPTY = -1
@@ -31,9 +32,14 @@ NOT_IN_HISTORY = -2
 AHEAD = 8  # look-ups a software pipeline requests ahead of use
 MAX_RECORDS = (1 << 31) - 1  # table slots hold int32 record numbers (128 GiB of records)
 # meta fields: history head / tail / size, free-list top, live records, tombstones, next unused
-# record, records with inflation count > 0, bricks and brick tombstones of the brick table
-M_HEAD, M_TAIL, M_HSIZE, M_FREE_TOP, M_LIVE, M_TOMBS, M_NEXT, M_NINF, M_BRICKS, M_BTOMBS = range(10)
-META_FIELDS = 10
+# record, voxels with inflation count > 0, bricks and brick tombstones of the brick table; the
+# inflation map's bricks, its table's tombstones, its next unused row and free-row stack top
+(M_HEAD, M_TAIL, M_HSIZE, M_FREE_TOP, M_LIVE, M_TOMBS, M_NEXT, M_NINF, M_BRICKS, M_BTOMBS,
+ M_IBRICKS, M_ITOMBS, M_INEXT, M_IFREE_TOP) = range(14)
+META_FIELDS = 14
+MAX_RADIUS = 64  # voxels of inflation radius (d_inf)
+ROW_BITS = 24  # an inflation-table slot holds brick id << ROW_BITS | row
+ROW_MASK = (1 << ROW_BITS) - 1
 _MULT = np.int64(-7046029254386353131)
 if "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
     # OpenMP first for trace_parts (its workers busy-wait between scans, so the next scan's
@@ -50,13 +56,6 @@ def new_records(n: int) -> np.ndarray:
     skip = (-raw.ctypes.data) % 64
     return raw[skip: skip + n * RECORD.itemsize].view(RECORD)
 
-
-def new_lists(size: int) -> tuple[np.ndarray, np.ndarray]:
-    """The pool of inflation look-up tables (int32 record numbers, `size` of them) and its meta:
-    [0] first unused int, [1 + radius] head of the free blocks of that radius (-1: none)."""
-    imeta = np.full(66, -1, dtype=np.int64)
-    imeta[0] = 0
-    return np.zeros(size, dtype=np.int32), imeta
 
 
 def new_table(size: int) -> np.ndarray:
@@ -107,7 +106,8 @@ def _erase(tab, rec, code, meta):
 
 
 @njit(cache=True)
-def _new_record(code, R, free, meta, tab):
+def _new_record(code, logodds, R, free, meta, tab):
+    """A record for voxel `code` entering the occupancy map with `logodds`, state unknown."""
     if meta[M_FREE_TOP] > 0:
         meta[M_FREE_TOP] -= 1
         r = free[meta[M_FREE_TOP]]
@@ -119,14 +119,11 @@ def _new_record(code, R, free, meta, tab):
     v.last = 0
     v.prev = NOT_IN_HISTORY
     v.next = NOT_IN_HISTORY
-    v.l = 0.0
-    v.inf = 0
+    v.l = logodds
     v.radius = -1
     v.hits = 0
     v.misses = 0
     v.state = 2
-    v.in_occ = 0
-    v.ilist = -1
     meta[M_LIVE] += 1
     _insert(tab, r, code, meta)
     return r
@@ -451,12 +448,15 @@ def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_fr
     Returns (n touched, n occ-changed)."""
     nt = 0
     nc = 0
-    # software pipeline (see _inflate_sphere): the home slot of update i + 2 * AHEAD and the
-    # record in the slot of update i + AHEAD are on their way while update i is applied
+    # software pipeline: the home slot of update i + 2 * AHEAD and the record in the slot of
+    # update i + AHEAD are on their way while update i is applied (memory latency bounds this
+    # loop: random table slots and records; the requests overlap their cache misses)
     mask = tab.shape[0] - 1
     n = packed.shape[0]
     for i in range(min(2 * AHEAD, n)):
         prefetch(tab, _slot(packed[i] >> 1, mask))
+    for j in range(1, min(AHEAD, meta[M_FREE_TOP]) + 1):  # the freed records new voxels will take
+        prefetch(R, free[meta[M_FREE_TOP] - j])
     for i in range(n):
         if i + 2 * AHEAD < n:
             prefetch(tab, _slot(packed[i + 2 * AHEAD] >> 1, mask))
@@ -469,20 +469,17 @@ def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_fr
         r = find(tab, R, code)
         is_new = False
         if hit:
-            if r < 0:
-                r = _new_record(code, R, free, meta, tab)
-            v = R[r]
-            if v.in_occ == 0:
-                # entering the occupancy map (new, or until now only inflated): misses apply from now on
+            if r < 0:  # entering the occupancy map: misses apply from now on
+                if meta[M_FREE_TOP] > AHEAD:
+                    prefetch(R, free[meta[M_FREE_TOP] - 1 - AHEAD])
+                r = _new_record(code, l_init, R, free, meta, tab)
                 _mark_present(code, bkeys, bmask, meta)
-                v.in_occ = 1
-                v.l = l_init
-                v.state = 2
                 is_new = True
+            v = R[r]
             x = v.l + l_hit
             v.hits += 1
         else:
-            if r < 0 or R[r].in_occ == 0:
+            if r < 0:
                 continue
             v = R[r]
             x = v.l + l_miss
@@ -503,132 +500,146 @@ def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_fr
     return nt, nc
 
 
-@njit(cache=True, inline="always")
-def _sphere_code(x, y, z, offsets, j):
-    """Morton code of voxel (x, y, z) + offsets[j], or -1 outside the key range."""
-    nx = x + offsets[j, 0]
-    ny = y + offsets[j, 1]
-    nz = z + offsets[j, 2]
-    if nx < 0 or ny < 0 or nz < 0 or nx > 65535 or ny > 65535 or nz > 65535:
-        return np.int64(-1)
-    return morton3(nx, ny, nz)
+# The inflation map (Alg. 2's inflation counts) as 8x8x8 bricks of int32 counts, one row of
+# `icounts` a brick, found through an open-addressing table of brick id << ROW_BITS | row. A
+# voxel that inflates adds 1 to every cell of its sphere: 33 cells at radius 2, in one to eight
+# bricks, so a sphere costs a few brick look-ups and counts written in place, where a record per
+# inflated voxel cost a table look-up and a 64-byte record per cell (docs/design/backends.md).
+# Removal recomputes the sphere from the voxel's remembered radius: the paper's look-up table of
+# inflated voxels (T_inf) spares hash look-ups that the bricks no longer need.
+
+
+def new_inflation(slots: int, rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An empty inflation map: its brick table (`slots`, a power of two), `rows` bricks of counts
+    (all zero: a row is handed out only while all zero), each row's count of non-zero cells,
+    and the stack of freed rows."""
+    return (np.full(slots, EMPTY, np.int64), np.zeros((rows, 512), np.int32), np.zeros(rows, np.int32),
+            np.zeros(rows, np.int32))
 
 
 @njit(cache=True, inline="always")
-def _list_alloc(size, ipool, imeta, radius):
-    """A block of 1 + size ints of the look-up pool (room is reserved by the caller); freed
-    blocks of the same radius are reused first (imeta[1 + radius] heads their free list)."""
-    b = imeta[1 + radius]
-    if b >= 0:
-        imeta[1 + radius] = ipool[b]
-        return b
-    b = imeta[0]
-    imeta[0] += 1 + size
-    return b
+def bricks_per_sphere(radius):
+    """The most 8x8x8 bricks a sphere of `radius` voxels can reach (2r + 1 keys an axis)."""
+    a = 1 + (2 * radius + 7) // 8
+    return a * a * a
 
 
 @njit(cache=True, inline="always")
-def _sphere_codes(r, radius, offsets, offset_start, R, codes):
-    """The Morton codes of the voxels within `radius` voxels of record r's voxel (inside the key
-    range) into `codes`; returns their count."""
-    code = R[r].code
+def _ibrick_row(ikeys, b):
+    """Row of inflation brick b, or -1."""
+    mask = ikeys.shape[0] - 1
+    s = _brick_home(b, mask)
+    while True:
+        k = ikeys[s]
+        if k == EMPTY:
+            return -1
+        if k >= 0 and k >> ROW_BITS == b:
+            return k & ROW_MASK
+        s = (s + 1) & mask
+
+
+@njit(cache=True)
+def _ibrick_add(ikeys, b, meta, ifree):
+    """A new (all-zero) brick b; returns its row. Room is the caller's (inflation_room)."""
+    if meta[M_IFREE_TOP] > 0:
+        meta[M_IFREE_TOP] -= 1
+        row = ifree[meta[M_IFREE_TOP]]
+    else:
+        row = meta[M_INEXT]
+        meta[M_INEXT] += 1
+    mask = ikeys.shape[0] - 1
+    s = _brick_home(b, mask)
+    while ikeys[s] >= 0:
+        s = (s + 1) & mask
+    if ikeys[s] == TOMB:
+        meta[M_ITOMBS] -= 1
+    ikeys[s] = (b << ROW_BITS) | row
+    meta[M_IBRICKS] += 1
+    return row
+
+
+@njit(cache=True)
+def _ibrick_drop(ikeys, b, row, meta, ifree):
+    """Brick b, all counts zero again, leaves; its row goes back to the stack."""
+    mask = ikeys.shape[0] - 1
+    s = _brick_home(b, mask)
+    key = (b << ROW_BITS) | row
+    while ikeys[s] != key:
+        s = (s + 1) & mask
+    ikeys[s] = TOMB
+    meta[M_ITOMBS] += 1
+    meta[M_IBRICKS] -= 1
+    ifree[meta[M_IFREE_TOP]] = row
+    meta[M_IFREE_TOP] += 1
+
+
+@njit(cache=True, inline="always")
+def inflation_room(ikeys, icounts, meta, bricks):
+    """Whether `bricks` more bricks fit: free rows, and the table at most 1/4 full with them."""
+    rows = icounts.shape[0] - meta[M_INEXT] + meta[M_IFREE_TOP]
+    return rows >= bricks and 4 * (meta[M_IBRICKS] + meta[M_ITOMBS] + bricks) <= ikeys.shape[0]
+
+
+@njit(cache=True)
+def sphere_add(code, radius, sign, offsets, offset_start, meta, ikeys, icounts, inz, ifree):
+    """Add `sign` (+1 or -1) to the inflation count of every voxel within `radius` voxels of
+    voxel `code` (inside the key range). Adding needs room for bricks_per_sphere(radius) new
+    bricks (inflation_room); removing only ever removes what an adding put there."""
     x = compact16(code)
     y = compact16(code >> 1)
     z = compact16(code >> 2)
-    m = 0
+    last = np.int64(-1)
+    row = -1
     for j in range(offset_start[radius], offset_start[radius + 1]):
-        c = _sphere_code(x, y, z, offsets, j)
-        if c >= 0:
-            codes[m] = c
-            m += 1
-    return m
-
-
-@njit(cache=True, inline="always")
-def _inflate_cells(r, radius, codes, m, offset_start, R, free, meta, tab, ipool, imeta):
-    """Add 1 to the inflation count of the m voxels `codes`, r's sphere of `radius` (creating
-    inflated-only records as needed), and keep their record numbers: r's look-up table of what
-    it inflated (the paper's T_inf), so that removal needs no hash look-up."""
-    block = _list_alloc(offset_start[radius + 1] - offset_start[radius], ipool, imeta, radius)
-    for j in range(m):
-        c = codes[j]
-        t = find(tab, R, c)
-        if t < 0:
-            t = _new_record(c, R, free, meta, tab)
-        v = R[t]
-        if v.inf == 0:
-            meta[M_NINF] += 1
-        v.inf += 1
-        ipool[block + 1 + j] = t
-    ipool[block] = m
-    R[r].ilist = block
-
-
-@njit(cache=True)
-def _inflate_sphere(r, radius, offsets, offset_start, R, free, meta, tab, ipool, imeta, codes):
-    """Inflate the sphere of `radius` round r (_inflate_cells), one voxel at a time (a snapshot's
-    load; a scan's update pipelines several voxels: inflate()).
-
-    Memory latency bounds this loop (random table slots and records), so it first requests
-    the sphere's home slots, then the records they name, with prefetches: the cache misses
-    overlap instead of following one another, and the look-ups that follow hit the cache.
-    `codes` is scratch room for the sphere's Morton codes (one per row of `offsets`)."""
-    m = _sphere_codes(r, radius, offsets, offset_start, R, codes)
-    mask = tab.shape[0] - 1
-    for j in range(m):
-        prefetch(tab, _slot(codes[j], mask))
-    for j in range(m):
-        t = tab[_slot(codes[j], mask)]
-        if t >= 0:
-            prefetch(R, t)
-    _inflate_cells(r, radius, codes, m, offset_start, R, free, meta, tab, ipool, imeta)
-
-
-@njit(cache=True)
-def _deflate(r, R, free, meta, tab, ipool, imeta):
-    """Undo r's inflation through its look-up table (_deflate_cells), its records requested
-    first (see _inflate_sphere)."""
-    block = R[r].ilist
-    for j in range(1, ipool[block] + 1):
-        prefetch(R, ipool[block + j])
-    _deflate_cells(r, R, free, meta, tab, ipool, imeta)
-
-
-@njit(cache=True, inline="always")
-def _deflate_cells(r, R, free, meta, tab, ipool, imeta):
-    """Undo r's inflation through its look-up table; inflated-only voxels left uninflated go."""
-    block = R[r].ilist
-    n = ipool[block]
-    for j in range(1, n + 1):
-        t = ipool[block + j]
-        v = R[t]
-        v.inf -= 1
-        if v.inf == 0:
+        nx = x + offsets[j, 0]
+        ny = y + offsets[j, 1]
+        nz = z + offsets[j, 2]
+        if nx < 0 or ny < 0 or nz < 0 or nx > 65535 or ny > 65535 or nz > 65535:
+            continue
+        b = _brick_id(nx, ny, nz)
+        if b != last:  # the offsets run along z first: most cells lie in the brick before
+            row = _ibrick_row(ikeys, b)
+            if row < 0:
+                row = _ibrick_add(ikeys, b, meta, ifree)
+            last = b
+        v = _in_brick(nx, ny, nz)
+        c = icounts[row, v] + sign
+        icounts[row, v] = c
+        if sign > 0:
+            if c == 1:
+                inz[row] += 1
+                meta[M_NINF] += 1
+        elif c == 0:
             meta[M_NINF] -= 1
-            if v.in_occ == 0:
-                _drop_record(t, R, free, meta, tab)
-    radius = R[r].radius
-    ipool[block] = imeta[1 + radius]
-    imeta[1 + radius] = block
-    R[r].ilist = -1
+            inz[row] -= 1
+            if inz[row] == 0:  # none of this sphere's later cells lies in it: each counts >= 1
+                _ibrick_drop(ikeys, b, row, meta, ifree)
+                last = -1
+
+
+@njit(cache=True)
+def ibrick_rehash(old_keys, ikeys):
+    """Move the live bricks of one inflation table into an empty one (drops tombstones)."""
+    mask = ikeys.shape[0] - 1
+    for i in range(old_keys.shape[0]):
+        k = old_keys[i]
+        if k >= 0:
+            s = _brick_home(k >> ROW_BITS, mask)
+            while ikeys[s] != EMPTY:
+                s = (s + 1) & mask
+            ikeys[s] = k
 
 
 @njit(cache=True, nogil=True)
-def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, offsets, offset_start,
-            R, free, meta, tab, ipool, imeta):
+def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, offsets, offset_start, R, meta,
+            ikeys, icounts, inz, ifree):
     """Alg. 2: occupancy-changed voxels within inf_range of the sensor (re)inflate: a voxel that
     became occupied inflates the sphere of the current radius (remembered per voxel), one that
-    stopped being occupied removes exactly the sphere it added. Returns voxels processed.
-
-    A software pipeline over those voxels (see _inflate_sphere): while voxel i is applied, the
-    records in the sphere's table slots of voxel i + 1 and the slots of voxel i + 2 are on their
-    way (a deflating voxel: its look-up table, then the records it names). Requests only: what
-    is applied, and in which order, is what applying one voxel after another does."""
-    # which voxels change their inflation, and which way: record + 1 inflates, -(record + 1)
-    # deflates. Decided before any is applied: they are all in the occupancy map, so applying
-    # one never drops or changes another's record.
-    work = np.empty(n_changed, np.int64)
+    stopped being occupied removes exactly the sphere it added. Returns the voxels processed,
+    or -1 when the inflation map has no room for the next sphere: the caller makes room and
+    calls again (those done have changed their radius, so are not done twice)."""
     k = 0
+    need = bricks_per_sphere(radius_now)
     for i in range(n_changed):
         r = changed[i]
         state = R[r].state
@@ -642,46 +653,15 @@ def inflate(changed, n_changed, sx, sy, sz, inf_range, resolution, radius_now, o
             continue
         radius = R[r].radius
         if state == 1 and radius < 0:
-            work[k] = r + 1
+            if not inflation_room(ikeys, icounts, meta, need):
+                return -1
+            R[r].radius = radius_now
+            sphere_add(code, radius_now, 1, offsets, offset_start, meta, ikeys, icounts, inz, ifree)
             k += 1
         elif state != 1 and radius >= 0:
-            work[k] = -(r + 1)
+            sphere_add(code, radius, -1, offsets, offset_start, meta, ikeys, icounts, inz, ifree)
+            R[r].radius = -1
             k += 1
-    size = offset_start[radius_now + 1] - offset_start[radius_now]
-    codes = np.empty((3, size), np.int64)  # the sphere codes of the voxels in flight, row i % 3
-    counts = np.zeros(3, np.int64)
-    mask = tab.shape[0] - 1
-    for i in range(-2, k):
-        if i + 2 < k:  # two ahead: the table slots
-            w = work[i + 2]
-            if w > 0:
-                row = (i + 2) % 3
-                counts[row] = _sphere_codes(w - 1, radius_now, offsets, offset_start, R, codes[row])
-                for j in range(counts[row]):
-                    prefetch(tab, _slot(codes[row, j], mask))
-            else:
-                prefetch(ipool, R[-w - 1].ilist)
-        if 0 <= i + 1 < k:  # one ahead: the records
-            w = work[i + 1]
-            if w > 0:
-                row = (i + 1) % 3
-                for j in range(counts[row]):
-                    t = tab[_slot(codes[row, j], mask)]
-                    if t >= 0:
-                        prefetch(R, t)
-            else:
-                block = R[-w - 1].ilist
-                for j in range(1, ipool[block] + 1):
-                    prefetch(R, ipool[block + j])
-        if i >= 0:
-            w = work[i]
-            if w > 0:
-                R[w - 1].radius = radius_now
-                _inflate_cells(w - 1, radius_now, codes[i % 3], counts[i % 3], offset_start, R, free, meta, tab,
-                               ipool, imeta)
-            else:
-                _deflate_cells(-w - 1, R, free, meta, tab, ipool, imeta)  # its records requested one voxel ago
-                R[-w - 1].radius = -1
     return k
 
 
@@ -715,33 +695,30 @@ def _push_back(r, R, meta):
 
 
 @njit(cache=True)
-def _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta, out_codes, out_values, listed):
+def _remove_from_map(r, R, free, meta, tab, bkeys, bmask, offsets, offset_start, ikeys, icounts, inz, ifree, out_codes,
+                     out_values, listed):
     """Take r out of the occupancy map, listing it (code, log-odds before it left) at out_*[listed];
     its inflation goes with it (exact, whatever the range). Returns the new count listed."""
-    out_codes[listed] = R[r].code
+    code = R[r].code
+    out_codes[listed] = code
     out_values[listed] = R[r].l
     if R[r].radius >= 0:
-        _deflate(r, R, free, meta, tab, ipool, imeta)
-        R[r].radius = -1
+        sphere_add(code, R[r].radius, -1, offsets, offset_start, meta, ikeys, icounts, inz, ifree)
     if R[r].prev != NOT_IN_HISTORY:
         _unlink(r, R, meta)
-    R[r].in_occ = 0
-    _clear_present(R[r].code, bkeys, bmask, meta)
-    if R[r].inf == 0:
-        _drop_record(r, R, free, meta, tab)
-    else:
-        R[r].state = 2  # stays only as an inflated voxel of the inflation map
+    _clear_present(code, bkeys, bmask, meta)
+    _drop_record(r, R, free, meta, tab)
     return listed + 1
 
 
 @njit(cache=True, nogil=True)
-def manage(touched, n_touched, n_lim, oldest_allowed, R, free, meta, tab, bkeys, bmask, ipool, imeta,
-           out_codes, out_values):
+def manage(touched, n_touched, n_lim, oldest_allowed, R, free, meta, tab, bkeys, bmask, offsets, offset_start, ikeys,
+           icounts, inz, ifree, out_codes, out_values):
     """Alg. 3: touched occupied voxels move to the back of the history, known-free ones leave the
     map, then the oldest leave until at most n_lim remain (and those older than the TTL).
     Every voxel that leaves the occupancy map is listed in out_codes / out_values (its log-odds
     before it left; room for n_touched + history size). Returns how many are listed."""
-    for i in range(n_touched):  # request the history neighbours first (see _inflate_sphere)
+    for i in range(n_touched):  # request the history neighbours first (see input_update)
         r = touched[i]
         p, n = R[r].prev, R[r].next
         if p >= 0:
@@ -751,27 +728,27 @@ def manage(touched, n_touched, n_lim, oldest_allowed, R, free, meta, tab, bkeys,
     listed = 0
     for i in range(n_touched):
         r = touched[i]
-        if R[r].state < 0 or R[r].in_occ == 0:
+        if R[r].state < 0:
             continue
         if R[r].prev != NOT_IN_HISTORY:
             _unlink(r, R, meta)
         if R[r].state == 1:
             _push_back(r, R, meta)
         elif R[r].state == 0:
-            listed = _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta, out_codes, out_values, listed)
+            listed = _remove_from_map(r, R, free, meta, tab, bkeys, bmask, offsets, offset_start, ikeys, icounts, inz,
+                                      ifree, out_codes, out_values, listed)
     mask = tab.shape[0] - 1
     while meta[M_HSIZE] > 0 and (meta[M_HSIZE] > n_lim or R[meta[M_HEAD]].last < oldest_allowed):
         r = meta[M_HEAD]
-        # the oldest voxels are cold: while this one leaves, the next one's look-up list and
-        # table slot, and the record after it, are on their way (a linked list: one step ahead)
+        # the oldest voxels are cold: while this one leaves, the next one's table slot and the
+        # record after it are on their way (a linked list: one step ahead)
         nxt = R[r].next
         if nxt >= 0:
-            if R[nxt].ilist >= 0:
-                prefetch(ipool, R[nxt].ilist)
             prefetch(tab, _slot(R[nxt].code, mask))
             if R[nxt].next >= 0:
                 prefetch(R, R[nxt].next)
-        listed = _remove_from_map(r, R, free, meta, tab, bkeys, bmask, ipool, imeta, out_codes, out_values, listed)
+        listed = _remove_from_map(r, R, free, meta, tab, bkeys, bmask, offsets, offset_start, ikeys, icounts, inz,
+                                  ifree, out_codes, out_values, listed)
     return listed
 
 
@@ -780,7 +757,7 @@ def lookup(tab, R, codes, out):
     """Log-odds of each voxel the occupancy map holds, NaN elsewhere."""
     for i in range(codes.shape[0]):
         r = find(tab, R, codes[i])
-        out[i] = R[r].l if r >= 0 and R[r].in_occ == 1 else np.nan
+        out[i] = R[r].l if r >= 0 else np.nan
 
 
 @njit(cache=True)
@@ -798,29 +775,35 @@ def rehash(tab, R, n_records):
 
 @njit(cache=True)
 def load_records(codes, values, l_occ, l_free, R, free, meta, tab, bkeys, bmask):
-    """Snapshot load: every stored voxel back into the occupancy map (inflation is rebuilt as
-    the map is used again)."""
+    """Snapshot load: every stored voxel back into the occupancy map (inflation is rebuilt by
+    restore)."""
     for i in range(codes.shape[0]):
-        r = _new_record(codes[i], R, free, meta, tab)
         x = values[i]
-        R[r].l = x
-        R[r].in_occ = 1
+        r = _new_record(codes[i], x, R, free, meta, tab)
         R[r].state = 1 if x > l_occ else (0 if x < l_free else 2)
         _mark_present(codes[i], bkeys, bmask, meta)
 
 
 @njit(cache=True)
-def restore(radius, last, hits, misses, history, offsets, offset_start, R, free, meta, tab, ipool, imeta):
-    """After load_records (same order as the stored voxels): per-voxel radius, stamps and counts,
-    the inflation map re-derived from the radii, and the history list in its stored order."""
-    codes = np.empty(offsets.shape[0], dtype=np.int64)
-    n = radius.shape[0]
-    for r in range(n):
+def restore(last, hits, misses, history, R, meta):
+    """After load_records (same order as the stored voxels): per-voxel stamps and counts, and
+    the history list in its stored order (inflation: reinflate)."""
+    for r in range(last.shape[0]):
         R[r].hits = hits[r]
         R[r].misses = misses[r]
         R[r].last = last[r]
-        if radius[r] >= 0:
-            R[r].radius = radius[r]
-            _inflate_sphere(r, radius[r], offsets, offset_start, R, free, meta, tab, ipool, imeta, codes)
     for i in range(history.shape[0]):
         _push_back(history[i], R, meta)
+
+
+@njit(cache=True)
+def reinflate(radius, start, offsets, offset_start, R, meta, ikeys, icounts, inz, ifree):
+    """After load_records: record r (r >= start) inflates the sphere of its stored radius[r].
+    Returns the record it stopped at for want of room (inflation_room), or radius.shape[0]."""
+    for r in range(start, radius.shape[0]):
+        if radius[r] >= 0:
+            if not inflation_room(ikeys, icounts, meta, bricks_per_sphere(radius[r])):
+                return r
+            R[r].radius = radius[r]
+            sphere_add(R[r].code, radius[r], 1, offsets, offset_start, meta, ikeys, icounts, inz, ifree)
+    return radius.shape[0]

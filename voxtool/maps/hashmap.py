@@ -96,7 +96,7 @@ class HashVoxelMap:
         self.meta = np.zeros(K.META_FIELDS, dtype=np.int64)
         self.meta[[K.M_HEAD, K.M_TAIL]] = -1
         self.bkeys, self.bmask = K.new_bricks(1024)
-        self.ipool, self.imeta = K.new_lists(1 << 16)
+        self.ikeys, self.icounts, self.inz, self.ifree = K.new_inflation(1024, 64)
         self.scan_metrics: list[dict] = []
         self.removed: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.float32))
         self._set_size = 1 << 14  # de-duplicating sets of the ray casting, one per half scan
@@ -115,8 +115,8 @@ class HashVoxelMap:
             raise ParameterError(f"{key}={value} must be a finite number{unlimited}")
         if key == "p_init" and not 0 < x < 1:
             raise ParameterError(f"p_init={x} must lie in (0, 1)")
-        if key == "d_inf" and not 0 <= x <= 64 * self.params.resolution:
-            raise ParameterError(f"d_inf={x} must lie in [0, 64 voxels]")
+        if key == "d_inf" and not 0 <= x <= K.MAX_RADIUS * self.params.resolution:
+            raise ParameterError(f"d_inf={x} must lie in [0, {K.MAX_RADIUS} voxels]")
         return x
 
     def set_params(self, **kw) -> None:
@@ -139,18 +139,12 @@ class HashVoxelMap:
                 self.set_params(**{k: value})
 
     # -- storage -------------------------------------------------------------------------------
-    def _reserve(self, new_records: int, new_bricks: int = 0, list_ints: int = 0) -> None:
-        """Room for new_records more records, new_bricks more bricks of the brick table and
-        list_ints more ints of inflation look-up tables."""
-        need = int(self.imeta[0]) + list_ints
-        if need > self.ipool.shape[0]:
-            grown = np.zeros(max(need, 2 * self.ipool.shape[0]), dtype=np.int32)
-            grown[: self.ipool.shape[0]] = self.ipool
-            self.ipool = grown
+    def _reserve(self, new_records: int, new_bricks: int = 0) -> None:
+        """Room for new_records more records and new_bricks more bricks of the brick table."""
         need = int(self.meta[K.M_NEXT]) + new_records
         if need > K.MAX_RECORDS:
             raise ParameterError(f"hashmap: {need} voxel records exceed the {K.MAX_RECORDS} the table addresses; "
-                                 "lower n_lim or d_inf")
+                                 "lower n_lim")
         cap = self.rec.shape[0]
         if need > cap:
             new_cap = max(need, 2 * cap)
@@ -181,6 +175,34 @@ class HashVoxelMap:
             self.bkeys, self.bmask = bkeys, bmask
             self.meta[K.M_BTOMBS] = 0
 
+    def _inflation_room(self, bricks: int) -> None:
+        """Room in the inflation map for `bricks` more bricks: rows of counts (doubling) and its
+        table at most 1/4 full (1/8 after growing), as the brick table above."""
+        rows = self.icounts.shape[0]
+        free_rows = rows - int(self.meta[K.M_INEXT]) + int(self.meta[K.M_IFREE_TOP])
+        if free_rows < bricks:
+            grown = max(2 * rows, rows + bricks)
+            if grown > K.ROW_MASK + 1:
+                raise ParameterError(f"hashmap: the inflation map would need {grown} bricks, more than the "
+                                     f"{K.ROW_MASK + 1} its table addresses; lower d_inf or inf_range")
+            counts = np.zeros((grown, 512), np.int32)  # the rows beyond are all zero: handed out as they are
+            counts[:rows] = self.icounts
+            nz, free = np.zeros(grown, np.int32), np.zeros(grown, np.int32)
+            nz[:rows], free[:rows] = self.inz, self.ifree
+            self.icounts, self.inz, self.ifree = counts, nz, free
+        live = int(self.meta[K.M_IBRICKS]) + bricks
+        size = self.ikeys.shape[0]
+        if 4 * (live + int(self.meta[K.M_ITOMBS])) > size:
+            while 8 * live > size:
+                size *= 2
+            ikeys = np.full(size, K.EMPTY, np.int64)
+            K.ibrick_rehash(self.ikeys, ikeys)
+            self.ikeys = ikeys
+            self.meta[K.M_ITOMBS] = 0
+
+    def _inflation_args(self) -> tuple:
+        return (self.offsets, self.offset_start, self.rec, self.meta, self.ikeys, self.icounts, self.inz, self.ifree)
+
     # -- MapBackend ------------------------------------------------------------------------------
     def warm_up(self) -> None:
         OctreeMap(self.params, self.sensor, threads=1).warm_up()
@@ -189,6 +211,8 @@ class HashVoxelMap:
             probe.integrate(Scan(np.array([[x, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
         # the table rebuilds run only when a table grows: load them now, not in a timed scan
         K.rehash(probe.tab, probe.rec, int(probe.meta[K.M_NEXT]))
+        K.ibrick_rehash(probe.ikeys, np.full(probe.ikeys.shape[0], K.EMPTY, np.int64))
+        K.reinflate(np.zeros(0, np.int32), 0, *probe._inflation_args())
         probe.query(np.zeros(1, np.int64))
         probe.discretize = 0  # SMALL_SCAN rays (to one voxel): the parallel path
         probe._trace(Scan(np.tile(np.array([[1.0, 0.5, 0.25]], np.float32), (SMALL_SCAN, 1)), np.zeros(3, np.float32)))
@@ -309,18 +333,17 @@ class HashVoxelMap:
         ch = changed[:nc]
         self.newly_occupied = self.rec["code"][ch[self.rec["state"][ch] == 1]]
         t1 = time.perf_counter()
-        sphere = int(self.offset_start[self.radius_vox + 1] - self.offset_start[self.radius_vox])
-        self._reserve(nc * sphere, 0, nc * (1 + sphere))
-        K.inflate(changed, nc, origin[0], origin[1], origin[2], v["inf_range"], self.params.resolution,
-                  self.radius_vox, self.offsets, self.offset_start, self.rec, self.free, self.meta, self.tab,
-                  self.ipool, self.imeta)
+        while K.inflate(changed, nc, origin[0], origin[1], origin[2], v["inf_range"], self.params.resolution,
+                        self.radius_vox, *self._inflation_args()) < 0:
+            self._inflation_room(K.bricks_per_sphere(self.radius_vox))  # rare: the map grows by doubling
         t2 = time.perf_counter()
         n_lim = int(v["n_lim"]) if v["n_lim"] >= 0 else INT64_MAX
         oldest = stamp - int(v["ttl"] * 1e9) if v["ttl"] >= 0 else INT64_MIN
         size = nt + int(self.meta[K.M_HSIZE])
         gone_codes, gone_values = np.empty(size, np.int64), np.empty(size, np.float32)
         n_gone = K.manage(touched, nt, n_lim, oldest, self.rec, self.free, self.meta, self.tab, self.bkeys,
-                             self.bmask, self.ipool, self.imeta, gone_codes, gone_values)
+                          self.bmask, self.offsets, self.offset_start, self.ikeys, self.icounts, self.inz, self.ifree,
+                          gone_codes, gone_values)
         self.removed = (gone_codes[:n_gone], gone_values[:n_gone])
         t3 = time.perf_counter()
         self.scan_metrics.append({"n_occ": int(self.meta[K.M_HSIZE]), "n_inf": int(self.meta[K.M_NINF]),
@@ -343,15 +366,10 @@ class HashVoxelMap:
                                 index=index))
 
     # -- views ---------------------------------------------------------------------------------
-    def _live(self) -> np.ndarray:
-        """Records in use (the inflation map), as a structured array."""
-        live = self.rec[: int(self.meta[K.M_NEXT])]
-        return live[live["state"] >= 0]
-
     def _occupancy_map(self) -> np.ndarray:
         """Records of the occupancy map (occupied and undecided voxels) in Morton order."""
-        live = self._live()
-        live = live[live["in_occ"] == 1]
+        live = self.rec[: int(self.meta[K.M_NEXT])]
+        live = live[live["state"] >= 0]
         return live[np.argsort(live["code"])]
 
     def occupied_codes(self) -> np.ndarray:
@@ -359,9 +377,16 @@ class HashVoxelMap:
         return occ["code"][occ["state"] == 1]
 
     def inflation_counts(self) -> dict[int, int]:
-        live = self._live()
-        live = live[live["inf"] > 0]
-        return dict(zip(live["code"].tolist(), live["inf"].tolist()))
+        """The inflation map: Morton code -> inflation count of every voxel inflated."""
+        from voxtool.keys import morton_encode
+
+        keys = self.ikeys[self.ikeys >= 0]
+        bricks, rows = keys >> K.ROW_BITS, keys & K.ROW_MASK
+        at, cell = np.nonzero(self.icounts[rows])
+        b = bricks[at]
+        xyz = np.stack([((b >> 26) << 3) | (cell & 7), (((b >> 13) & 8191) << 3) | ((cell >> 3) & 7),
+                        ((b & 8191) << 3) | (cell >> 6)], axis=1)
+        return dict(zip(morton_encode(xyz).tolist(), self.icounts[rows][at, cell].tolist()))
 
     def n_inflated(self) -> int:
         return int(self.meta[K.M_NINF])
@@ -382,13 +407,13 @@ class HashVoxelMap:
 
     def memory_bytes(self) -> int:
         return int(self.rec.nbytes + self.free.nbytes + self.tab.nbytes + self.bkeys.nbytes + self.bmask.nbytes
-                   + self.ipool.nbytes)
+                   + self.ikeys.nbytes + self.icounts.nbytes + self.inz.nbytes + self.ifree.nbytes)
 
     def used_bytes(self) -> int:
         """Live records (64 B) with their table slots (4 B), bricks (8 B id + 64 B mask) and
-        inflation look-up tables in use."""
+        inflation bricks (8 B key + 2,048 B of counts + 4 B of non-zero cells)."""
         live = int(self.meta[K.M_LIVE])
-        return int(live * (64 + 4) + int(self.meta[K.M_BRICKS]) * 72 + int(self.imeta[0]) * 4)
+        return int(live * (64 + 4) + int(self.meta[K.M_BRICKS]) * 72 + int(self.meta[K.M_IBRICKS]) * 2060)
 
     def _history(self) -> np.ndarray:
         """Record indices of the history list, oldest first."""
@@ -406,7 +431,7 @@ class HashVoxelMap:
         voxel's inflation radius, last-update stamp, hit/miss counts, and the history order."""
         n = int(self.meta[K.M_NEXT])
         live = self.rec[:n]
-        r = np.flatnonzero((live["state"] >= 0) & (live["in_occ"] == 1))
+        r = np.flatnonzero(live["state"] >= 0)
         r = r[np.argsort(live["code"][r])]
         occ = live[r]
         position = np.full(n, -1, dtype=np.int64)
@@ -425,7 +450,7 @@ class HashVoxelMap:
         if any(a is None for a in extra) or any(a.shape[0] != n for a in extra[:4]):
             raise FormatError("hashmap snapshot: per-voxel arrays missing or of the wrong length")
         radius, last, hits, misses, history = extra
-        if np.any(radius > 64) or np.any(history < 0) or np.any(history >= n) or np.unique(history).size != history.size:
+        if np.any(radius > K.MAX_RADIUS) or np.any(history < 0) or np.any(history >= n) or np.unique(history).size != history.size:
             raise FormatError("hashmap snapshot: inflation radius or history out of range")
         max_r = int(max(radius.max(initial=0), self.radius_vox))
         if max_r + 1 >= self.offset_start.shape[0]:
@@ -435,13 +460,15 @@ class HashVoxelMap:
         if cells > MAX_LOAD_INFLATION:
             raise FormatError(f"hashmap snapshot: rebuilding its inflation would touch {cells:,} voxels "
                               f"(more than {MAX_LOAD_INFLATION:,})")
-        inflating = int((radius >= 0).sum())
-        self._reserve(n + cells, int(np.unique(codes >> 9).shape[0]), inflating + cells)
+        self._reserve(n, int(np.unique(codes >> 9).shape[0]))
         K.load_records(codes, values, np.float32(self.sensor.threshold_log), np.float32(logodds(self.p_free)),
                        self.rec, self.free, self.meta, self.tab, self.bkeys, self.bmask)
-        K.restore(radius.astype(np.int32), last.astype(np.int64), hits.astype(np.int32), misses.astype(np.int32),
-                  history.astype(np.int64), self.offsets, self.offset_start, self.rec, self.free, self.meta, self.tab,
-                  self.ipool, self.imeta)
+        K.restore(last.astype(np.int64), hits.astype(np.int32), misses.astype(np.int32), history.astype(np.int64),
+                  self.rec, self.meta)
+        radius = radius.astype(np.int32)
+        done = 0
+        while (done := K.reinflate(radius, done, *self._inflation_args())) < n:
+            self._inflation_room(K.bricks_per_sphere(int(radius[done])))
 
     def extra_meta(self) -> dict[str, Any]:
         return {k: self.values[k] for k in SCHEDULABLE} | {"p_free": self.p_free, "discretize": self.discretize}
