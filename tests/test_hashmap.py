@@ -75,14 +75,16 @@ class ReferenceMap:
             if k in occ:
                 if r is None:
                     r = self.rec[k] = dict(l=F32(0), in_occ=False, state=2, inf=0, radius=-1)
-                if not r["in_occ"]:
-                    r.update(in_occ=True, l=l_init, state=2)
+                if not r["in_occ"]:  # entering the map: a new voxel, whatever it was before
+                    r.update(in_occ=True, l=l_init, state=2, hits=0, misses=0)
                     new = True
                 v = F32(r["l"] + F32(S.hit_log))
+                r["hits"] += 1
             else:
                 if r is None or not r["in_occ"]:
                     continue
                 v = F32(r["l"] + F32(S.miss_log))
+                r["misses"] += 1
             v = min(max(v, F32(S.clamp_min_log)), F32(S.clamp_max_log))
             was_occ = r["state"] == 1 and not new
             r["l"] = v
@@ -122,6 +124,9 @@ class ReferenceMap:
     def inflation(self):
         return {k: r["inf"] for k, r in self.rec.items() if r["inf"] > 0}
 
+    def counts(self):
+        return {k: (r["hits"], r["misses"]) for k, r in self.rec.items() if r["in_occ"]}
+
 
 def as_keys(codes):
     return {tuple(int(v) for v in k) for k in morton_decode(np.asarray(codes, dtype=np.int64))}
@@ -141,6 +146,9 @@ def brick_table_voxels(m: HashVoxelMap) -> set:
 
 def check(m: HashVoxelMap, ref: ReferenceMap):
     assert as_keys(m.occupied_codes()) == ref.occupied()
+    state = m.state_arrays()  # each voxel's hit and miss counts since it last entered the map
+    keys = [tuple(int(v) for v in k) for k in morton_decode(state["leaf_codes"])]
+    assert dict(zip(keys, zip(state["hm_hits"].tolist(), state["hm_misses"].tolist()))) == ref.counts()
     got = m.inflation_counts()
     assert {tuple(int(v) for v in morton_decode(np.array([c]))[0]): n for c, n in got.items()} == ref.inflation()
     assert brick_table_voxels(m) == as_keys(m.leaves().codes)  # exact: no stale or missing voxel
