@@ -57,7 +57,6 @@ def new_records(n: int) -> np.ndarray:
     return raw[skip: skip + n * RECORD.itemsize].view(RECORD)
 
 
-
 def new_table(size: int) -> np.ndarray:
     """An empty hash table of `size` (a power of two) slots, each a record number (EMPTY, TOMB).
     The code to compare lies in the record, which a successful look-up reads anyway: 4 bytes a
