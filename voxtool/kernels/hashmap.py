@@ -104,15 +104,21 @@ def _erase(tab, rec, code, meta):
     meta[M_TOMBS] += 1
 
 
+@njit(cache=True, inline="always")
+def _take(free, meta, top, unused):
+    """An index from a pool: the last one freed (free[:meta[top]] is the stack of freed ones),
+    else the first never used (meta[unused])."""
+    if meta[top] > 0:
+        meta[top] -= 1
+        return np.int64(free[meta[top]])
+    meta[unused] += 1
+    return meta[unused] - 1
+
+
 @njit(cache=True)
 def _new_record(code, logodds, R, free, meta, tab):
     """A record for voxel `code` entering the occupancy map with `logodds`, state unknown."""
-    if meta[M_FREE_TOP] > 0:
-        meta[M_FREE_TOP] -= 1
-        r = free[meta[M_FREE_TOP]]
-    else:
-        r = meta[M_NEXT]
-        meta[M_NEXT] += 1
+    r = _take(free, meta, M_FREE_TOP, M_NEXT)
     v = R[r]
     v.code = code
     v.last = 0
@@ -164,17 +170,34 @@ def _brick_home(b, mask):
 
 
 @njit(cache=True, inline="always")
-def brick_find(bkeys, b):
-    """Slot of brick id b, or -1."""
-    mask = bkeys.shape[0] - 1
+def _brick_slot(keys, b, shift):
+    """Slot of brick id b in a brick table whose slots hold id << shift (the inflation map's
+    table keeps a row number below), or -1."""
+    mask = keys.shape[0] - 1
     s = _brick_home(b, mask)
     while True:
-        k = bkeys[s]
-        if k == b:
-            return s
+        k = keys[s]
         if k == EMPTY:
             return -1
+        if k >= 0 and k >> shift == b:
+            return s
         s = (s + 1) & mask
+
+
+@njit(cache=True, inline="always")
+def _free_slot(keys, b):
+    """The first slot from brick id b's home that holds no brick (empty, or a tombstone)."""
+    mask = keys.shape[0] - 1
+    s = _brick_home(b, mask)
+    while keys[s] >= 0:
+        s = (s + 1) & mask
+    return s
+
+
+@njit(cache=True, inline="always")
+def brick_find(bkeys, b):
+    """Slot of brick id b, or -1."""
+    return _brick_slot(bkeys, b, 0)
 
 
 @njit(cache=True)
@@ -184,10 +207,7 @@ def _mark_present(code, bkeys, bmask, meta):
     b = _brick_id(kx, ky, kz)
     s = brick_find(bkeys, b)
     if s < 0:
-        mask = bkeys.shape[0] - 1
-        s = _brick_home(b, mask)
-        while bkeys[s] != EMPTY and bkeys[s] != TOMB:
-            s = (s + 1) & mask
+        s = _free_slot(bkeys, b)
         if bkeys[s] == TOMB:
             meta[M_BTOMBS] -= 1
         bkeys[s] = b
@@ -215,13 +235,10 @@ def _clear_present(code, bkeys, bmask, meta):
 @njit(cache=True)
 def brick_rehash(old_keys, old_mask, bkeys, bmask):
     """Move the live bricks of one table into an empty, larger one (drops tombstones)."""
-    mask = bkeys.shape[0] - 1
     for i in range(old_keys.shape[0]):
         b = old_keys[i]
         if b >= 0:
-            s = _brick_home(b, mask)
-            while bkeys[s] != EMPTY:
-                s = (s + 1) & mask
+            s = _free_slot(bkeys, b)
             bkeys[s] = b
             bmask[s, :] = old_mask[i, :]
 
@@ -526,30 +543,15 @@ def bricks_per_sphere(radius):
 @njit(cache=True, inline="always")
 def _ibrick_row(ikeys, b):
     """Row of inflation brick b, or -1."""
-    mask = ikeys.shape[0] - 1
-    s = _brick_home(b, mask)
-    while True:
-        k = ikeys[s]
-        if k == EMPTY:
-            return -1
-        if k >= 0 and k >> ROW_BITS == b:
-            return k & ROW_MASK
-        s = (s + 1) & mask
+    s = _brick_slot(ikeys, b, ROW_BITS)
+    return ikeys[s] & ROW_MASK if s >= 0 else -1
 
 
 @njit(cache=True)
 def _ibrick_add(ikeys, b, meta, ifree):
     """A new (all-zero) brick b; returns its row. Room is the caller's (inflation_room)."""
-    if meta[M_IFREE_TOP] > 0:
-        meta[M_IFREE_TOP] -= 1
-        row = ifree[meta[M_IFREE_TOP]]
-    else:
-        row = meta[M_INEXT]
-        meta[M_INEXT] += 1
-    mask = ikeys.shape[0] - 1
-    s = _brick_home(b, mask)
-    while ikeys[s] >= 0:
-        s = (s + 1) & mask
+    row = _take(ifree, meta, M_IFREE_TOP, M_INEXT)
+    s = _free_slot(ikeys, b)
     if ikeys[s] == TOMB:
         meta[M_ITOMBS] -= 1
     ikeys[s] = (b << ROW_BITS) | row
@@ -560,12 +562,7 @@ def _ibrick_add(ikeys, b, meta, ifree):
 @njit(cache=True)
 def _ibrick_drop(ikeys, b, row, meta, ifree):
     """Brick b, all counts zero again, leaves; its row goes back to the stack."""
-    mask = ikeys.shape[0] - 1
-    s = _brick_home(b, mask)
-    key = (b << ROW_BITS) | row
-    while ikeys[s] != key:
-        s = (s + 1) & mask
-    ikeys[s] = TOMB
+    ikeys[_brick_slot(ikeys, b, ROW_BITS)] = TOMB
     meta[M_ITOMBS] += 1
     meta[M_IBRICKS] -= 1
     ifree[meta[M_IFREE_TOP]] = row
@@ -619,14 +616,10 @@ def sphere_add(code, radius, sign, offsets, offset_start, meta, ikeys, icounts, 
 @njit(cache=True)
 def ibrick_rehash(old_keys, ikeys):
     """Move the live bricks of one inflation table into an empty one (drops tombstones)."""
-    mask = ikeys.shape[0] - 1
     for i in range(old_keys.shape[0]):
         k = old_keys[i]
         if k >= 0:
-            s = _brick_home(k >> ROW_BITS, mask)
-            while ikeys[s] != EMPTY:
-                s = (s + 1) & mask
-            ikeys[s] = k
+            ikeys[_free_slot(ikeys, k >> ROW_BITS)] = k
 
 
 @njit(cache=True, nogil=True)
