@@ -48,6 +48,25 @@ def main() -> None:
         if names:
             described["planed"] = list(names)
         (OUT / f"{name}.json").write_text(json.dumps(described, indent=1) + "\n")
+    hashmap(base)
+
+
+def hashmap(base: dict) -> None:
+    """A hash map's snapshot (formats/snapshot.md, `hashmap` arrays): three voxels at 0.1 m, two
+    occupied (in the history, oldest first: voxel 2, then voxel 0) and one undecided; voxel 0
+    inflated a sphere of radius 2 voxels, voxel 2 one of radius 1 (an earlier d_inf)."""
+    header = {**base, "backend": "hashmap", "map_params": {**base["map_params"], "resolution": 0.1},
+              "backend_params": {"p_init": 0.5, "n_lim": 50000.0, "d_in": -1.0, "d_inf": 0.2, "inf_range": 8.0,
+                                 "ttl": -1.0, "p_free": 0.4, "discretize": 1}}
+    arrays = {"leaf_codes": np.array([0xE00000000000, 0xE00000000001, 0xE00000000008], np.int64),
+              "leaf_depths": np.full(3, 16, np.uint8),
+              "leaf_values": np.array([0.8472979, -0.2, 1.6945958], np.float32),
+              "hm_radius": np.array([2, -1, 1], np.int32),
+              "hm_last": np.array([300_000_000, 300_000_000, 100_000_000], np.int64),
+              "hm_hits": np.array([2, 1, 4], np.int32), "hm_misses": np.array([0, 1, 2], np.int32),
+              "hm_history": np.array([2, 0], np.int64)}
+    (OUT / "snapshot_hashmap.vxm").write_bytes(snapshot_bytes(header, arrays, codec="raw"))
+    (OUT / "snapshot_hashmap.json").write_text(json.dumps(describe(header, arrays), indent=1) + "\n")
 
 
 def sharded() -> None:

@@ -477,3 +477,26 @@ def _finest_keys(centre, size, res):
     lo = np.floor((centre - size / 2) / res + 0.5).astype(np.int64) + 32768
     g = np.arange(n)
     return [(int(lo[0] + i), int(lo[1] + j), int(lo[2] + k)) for i in g for j in g for k in g]
+
+
+def test_the_golden_snapshot_loads_its_voxels_history_and_inflation():
+    """formats/vectors/snapshot_hashmap.vxm (formats/snapshot.md, `hashmap` arrays): loading
+    rebuilds the inflation map from the stored radii (each voxel's sphere, brute force), and
+    the map writes back the arrays it was loaded from."""
+    from pathlib import Path
+
+    from voxtool.io.mapfile import load_map
+
+    m, snap = load_map(Path(__file__).resolve().parents[1] / "formats" / "vectors" / "snapshot_hashmap.vxm")
+    keys = [tuple(int(v) for v in k) for k in morton_decode(snap.arrays["leaf_codes"])]
+    want: dict = {}
+    for k, radius in zip(keys, snap.arrays["hm_radius"].tolist()):
+        for cell in (ReferenceMap(0.1).sphere(k, radius) if radius >= 0 else []):
+            want[cell] = want.get(cell, 0) + 1
+    got = {tuple(int(v) for v in morton_decode(np.array([c]))[0]): n for c, n in m.inflation_counts().items()}
+    # spheres of radius 2 (33 voxels) and 1 (7) two voxels apart along x share two voxels, counted twice
+    assert got == want and len(want) == 33 + 7 - 2 and sorted(want.values())[-3:] == [1, 2, 2]
+    state = m.state_arrays()
+    for name, stored in snap.arrays.items():
+        np.testing.assert_array_equal(state[name], stored)
+    assert as_keys(m.occupied_codes()) == {keys[0], keys[2]}  # the undecided voxel is kept, not occupied
