@@ -500,3 +500,33 @@ def test_the_golden_snapshot_loads_its_voxels_history_and_inflation():
     for name, stored in snap.arrays.items():
         np.testing.assert_array_equal(state[name], stored)
     assert as_keys(m.occupied_codes()) == {keys[0], keys[2]}  # the undecided voxel is kept, not occupied
+
+
+@pytest.mark.parametrize("d_inf, dtype, peak", [(0.3, np.uint8, 123), (0.4, np.int32, 257)])
+def test_a_solid_block_reaches_the_largest_count_its_counts_hold(d_inf, dtype, peak):
+    """Inflation counts are one byte up to radius 3 (K.count_dtype): a voxel's count is at most
+    one sphere's cells, reached inside a solid block of occupied voxels (123 at radius 3, 257
+    at radius 4, which takes int32)."""
+    g = (np.arange(9) + 0.5) * 0.1 + 1.0  # the centres of 9 x 9 x 9 voxels
+    block = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3).astype(F32)
+    m = HashVoxelMap(MapParams(0.1), S, d_inf=d_inf)
+    ref = ReferenceMap(0.1, d_inf=d_inf)
+    for _ in range(2):
+        m.integrate(Scan(block, np.zeros(3, F32)))
+        ref.integrate(block, np.zeros(3, F32))
+        check(m, ref)
+    assert m.icounts.dtype == dtype and max(m.inflation_counts().values()) == peak
+
+
+def test_a_larger_radius_mid_stream_widens_the_counts():
+    """A schedule raising d_inf past 3 voxels turns one-byte counts into int32 ones, counts kept."""
+    m = HashVoxelMap(MapParams(0.1), S, n_lim=-1, d_inf=0.2, schedule=[(2, "d_inf", 0.5)])
+    ref = ReferenceMap(0.1, n_lim=-1, d_inf=0.2)
+    for i, scan in enumerate(world_scans(4, 120, seed=7)):
+        scan.index = i
+        if i == 2:
+            ref.p["d_inf"] = 0.5
+        m.integrate(scan)
+        ref.integrate(scan.points, scan.origin)
+        check(m, ref)
+        assert m.icounts.dtype == (np.uint8 if i < 2 else np.int32)

@@ -516,7 +516,7 @@ def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_fr
     return nt, nc
 
 
-# The inflation map (Alg. 2's inflation counts) as 8x8x8 bricks of int32 counts, one row of
+# The inflation map (Alg. 2's inflation counts) as 8x8x8 bricks of counts, one row of
 # `icounts` a brick, found through an open-addressing table of brick id << ROW_BITS | row. A
 # voxel that inflates adds 1 to every cell of its sphere: 33 cells at radius 2, in one to eight
 # bricks, so a sphere costs a few brick look-ups and counts written in place, where a record per
@@ -525,11 +525,19 @@ def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_fr
 # inflated voxels (T_inf) spares hash look-ups that the bricks no longer need.
 
 
-def new_inflation(slots: int, rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def count_dtype(radius: int) -> np.dtype:
+    """Inflation counts for spheres of at most `radius` voxels: a voxel's count is at most the
+    cells of one sphere (every voxel of its own sphere inflating it), 123 for radius 3, so one
+    byte up to there (a brick takes 512 B instead of 2 KB; the shipped sample at 0.2 m fills
+    its bricks to 3 %), int32 beyond."""
+    return np.dtype(np.uint8) if radius <= 3 else np.dtype(np.int32)
+
+
+def new_inflation(slots: int, rows: int, dtype: np.dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """An empty inflation map: its brick table (`slots`, a power of two), `rows` bricks of counts
-    (all zero: a row is handed out only while all zero), each row's count of non-zero cells,
-    and the stack of freed rows."""
-    return (np.full(slots, EMPTY, np.int64), np.zeros((rows, 512), np.int32), np.zeros(rows, np.int32),
+    of `dtype` (count_dtype; all zero: a row is handed out only while all zero), each row's
+    count of non-zero cells, and the stack of freed rows."""
+    return (np.full(slots, EMPTY, np.int64), np.zeros((rows, 512), dtype), np.zeros(rows, np.int32),
             np.zeros(rows, np.int32))
 
 

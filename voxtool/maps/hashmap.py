@@ -86,6 +86,7 @@ class HashVoxelMap:
             raise ParameterError(f"rate_hz={rate_hz} must be a positive number")
         self.p_free = p_free
         self.values: dict[str, float] = {}
+        self.icounts: np.ndarray | None = None  # the inflation map's counts (below), widened by set_params
         self.offsets, self.offset_start = sphere_offsets(0)
         self.set_params(p_init=p_init, n_lim=n_lim, d_in=d_in, d_inf=d_inf, inf_range=inf_range, ttl=ttl)
         self.schedule = sorted((int(i), str(k), self._checked(str(k), v)) for i, k, v in (schedule or []))
@@ -96,7 +97,7 @@ class HashVoxelMap:
         self.meta = np.zeros(K.META_FIELDS, dtype=np.int64)
         self.meta[[K.M_HEAD, K.M_TAIL]] = -1
         self.bkeys, self.bmask = K.new_bricks(1024)
-        self.ikeys, self.icounts, self.inz, self.ifree = K.new_inflation(1024, 64)
+        self.ikeys, self.icounts, self.inz, self.ifree = K.new_inflation(1024, 64, K.count_dtype(self.radius_vox))
         self.scan_metrics: list[dict] = []
         self.removed: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.float32))
         self._set_size = 1 << 14  # de-duplicating sets of the ray casting, one per half scan
@@ -132,6 +133,14 @@ class HashVoxelMap:
                                                     sm.clamp_max_log, sm.threshold_log, logodds(self.p_free)))
         if self.radius_vox + 1 >= self.offset_start.shape[0]:
             self.offsets, self.offset_start = sphere_offsets(self.radius_vox)
+        self._widen_counts(self.radius_vox)
+
+    def _widen_counts(self, radius: int) -> None:
+        """Inflation counts wide enough for spheres of `radius` (never narrowed: voxels keep the
+        radius they inflated with)."""
+        wide = K.count_dtype(radius)
+        if self.icounts is not None and wide.itemsize > self.icounts.dtype.itemsize:
+            self.icounts = self.icounts.astype(wide)
 
     def _schedule_for(self, index: int) -> None:
         for i, k, value in self.schedule:
@@ -185,7 +194,7 @@ class HashVoxelMap:
             if grown > K.ROW_MASK + 1:
                 raise ParameterError(f"hashmap: the inflation map would need {grown} bricks, more than the "
                                      f"{K.ROW_MASK + 1} its table addresses; lower d_inf or inf_range")
-            counts = np.zeros((grown, 512), np.int32)  # the rows beyond are all zero: handed out as they are
+            counts = np.zeros((grown, 512), self.icounts.dtype)  # the rows beyond are all zero: handed out as they are
             counts[:rows] = self.icounts
             nz, free = np.zeros(grown, np.int32), np.zeros(grown, np.int32)
             nz[:rows], free[:rows] = self.inz, self.ifree
@@ -207,12 +216,15 @@ class HashVoxelMap:
     def warm_up(self) -> None:
         OctreeMap(self.params, self.sensor, threads=1).warm_up()
         probe = HashVoxelMap(MapParams(resolution=0.5), self.sensor, n_lim=1, d_inf=0.5, threads=self.threads)
-        for x in (1.0, 3.0):
-            probe.integrate(Scan(np.array([[x, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
+        for wide in (False, True):  # the update's kernels for one-byte counts, then for int32 ones
+            if wide:
+                probe._widen_counts(K.MAX_RADIUS)
+            for x in (1.0, 3.0):
+                probe.integrate(Scan(np.array([[x, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
+            K.reinflate(np.zeros(0, np.int32), 0, *probe._inflation_args())
         # the table rebuilds run only when a table grows: load them now, not in a timed scan
         K.rehash(probe.tab, probe.rec, int(probe.meta[K.M_NEXT]))
         K.ibrick_rehash(probe.ikeys, np.full(probe.ikeys.shape[0], K.EMPTY, np.int64))
-        K.reinflate(np.zeros(0, np.int32), 0, *probe._inflation_args())
         probe.query(np.zeros(1, np.int64))
         probe.discretize = 0  # SMALL_SCAN rays (to one voxel): the parallel path
         probe._trace(Scan(np.tile(np.array([[1.0, 0.5, 0.25]], np.float32), (SMALL_SCAN, 1)), np.zeros(3, np.float32)))
@@ -411,9 +423,9 @@ class HashVoxelMap:
 
     def used_bytes(self) -> int:
         """Live records (64 B) with their table slots (4 B), bricks (8 B id + 64 B mask) and
-        inflation bricks (8 B key + 2,048 B of counts + 4 B of non-zero cells)."""
+        inflation bricks (8 B key, 512 counts of 1 or 4 B, 4 B of non-zero cells)."""
         live = int(self.meta[K.M_LIVE])
-        return int(live * (64 + 4) + int(self.meta[K.M_BRICKS]) * 72 + int(self.meta[K.M_IBRICKS]) * 2060)
+        return int(live * (64 + 4) + int(self.meta[K.M_BRICKS]) * 72 + int(self.meta[K.M_IBRICKS]) * (12 + self.icounts[0].nbytes))
 
     def _history(self) -> np.ndarray:
         """Record indices of the history list, oldest first."""
@@ -455,6 +467,7 @@ class HashVoxelMap:
         max_r = int(max(radius.max(initial=0), self.radius_vox))
         if max_r + 1 >= self.offset_start.shape[0]:
             self.offsets, self.offset_start = sphere_offsets(max_r)
+        self._widen_counts(max_r)
         sizes = np.diff(self.offset_start)
         cells = int(sizes[radius[radius >= 0]].sum())  # the inflation the file asks to rebuild
         if cells > MAX_LOAD_INFLATION:
