@@ -425,7 +425,8 @@ class HashVoxelMap:
         """Live records (64 B) with their table slots (4 B), bricks (8 B id + 64 B mask) and
         inflation bricks (8 B key, 512 counts of 1 or 4 B, 4 B of non-zero cells)."""
         live = int(self.meta[K.M_LIVE])
-        return int(live * (64 + 4) + int(self.meta[K.M_BRICKS]) * 72 + int(self.meta[K.M_IBRICKS]) * (12 + self.icounts[0].nbytes))
+        brick = 8 + self.icounts[0].nbytes + 4
+        return int(live * (64 + 4) + int(self.meta[K.M_BRICKS]) * 72 + int(self.meta[K.M_IBRICKS]) * brick)
 
     def _history(self) -> np.ndarray:
         """Record indices of the history list, oldest first."""
@@ -462,7 +463,8 @@ class HashVoxelMap:
         if any(a is None for a in extra) or any(a.shape[0] != n for a in extra[:4]):
             raise FormatError("hashmap snapshot: per-voxel arrays missing or of the wrong length")
         radius, last, hits, misses, history = extra
-        if np.any(radius > K.MAX_RADIUS) or np.any(history < 0) or np.any(history >= n) or np.unique(history).size != history.size:
+        if (np.any(radius > K.MAX_RADIUS) or np.any(history < 0) or np.any(history >= n)
+                or np.unique(history).size != history.size):
             raise FormatError("hashmap snapshot: inflation radius or history out of range")
         max_r = int(max(radius.max(initial=0), self.radius_vox))
         if max_r + 1 >= self.offset_start.shape[0]:
