@@ -115,6 +115,13 @@ def _take(free, meta, top, unused):
     return meta[unused] - 1
 
 
+@njit(cache=True, inline="always")
+def _give(free, meta, top, index):
+    """Index back to its pool (_take hands the last one given out first)."""
+    free[meta[top]] = index
+    meta[top] += 1
+
+
 @njit(cache=True)
 def _new_record(code, logodds, R, free, meta, tab):
     """A record for voxel `code` entering the occupancy map with `logodds`, state unknown."""
@@ -138,8 +145,7 @@ def _new_record(code, logodds, R, free, meta, tab):
 def _drop_record(r, R, free, meta, tab):
     R[r].state = -1
     _erase(tab, r, R[r].code, meta)
-    free[meta[M_FREE_TOP]] = r
-    meta[M_FREE_TOP] += 1
+    _give(free, meta, M_FREE_TOP, r)
     meta[M_LIVE] -= 1
 
 
@@ -573,8 +579,7 @@ def _ibrick_drop(ikeys, b, row, meta, ifree):
     ikeys[_brick_slot(ikeys, b, ROW_BITS)] = TOMB
     meta[M_ITOMBS] += 1
     meta[M_IBRICKS] -= 1
-    ifree[meta[M_IFREE_TOP]] = row
-    meta[M_IFREE_TOP] += 1
+    _give(ifree, meta, M_IFREE_TOP, row)
 
 
 @njit(cache=True, inline="always")
@@ -775,8 +780,8 @@ def rehash(tab, R, n_records):
 
 @njit(cache=True)
 def load_records(codes, values, l_occ, l_free, R, free, meta, tab, bkeys, bmask):
-    """Snapshot load: every stored voxel back into the occupancy map (inflation is rebuilt by
-    restore)."""
+    """Snapshot load: every stored voxel back into the occupancy map (its inflation is rebuilt
+    by reinflate)."""
     for i in range(codes.shape[0]):
         x = values[i]
         r = _new_record(codes[i], x, R, free, meta, tab)

@@ -31,7 +31,8 @@ RAYS_PER_PART = 250
 
 SCHEDULABLE = ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")
 # a snapshot stores each voxel's inflation radius; loading re-inflates. A file asking for more
-# than this many sphere cells (8 GiB of records) is refused rather than run out of memory.
+# than this many sphere cells (count updates) is refused rather than run for minutes; the bricks
+# they fill take at most a row (512 B or 2 KB) a cell; the shared data fill 17-128 cells a row.
 MAX_LOAD_INFLATION = 1 << 27
 INT64_MAX, INT64_MIN = int(np.iinfo(np.int64).max), int(np.iinfo(np.int64).min)
 # numba's fallback threading layer (workqueue, where neither OpenMP nor TBB loads) aborts the
