@@ -128,8 +128,17 @@ class ReferenceMap:
         return {k: (r["hits"], r["misses"]) for k, r in self.rec.items() if r["in_occ"]}
 
 
+def key_list(codes):
+    return [tuple(int(v) for v in k) for k in morton_decode(np.asarray(codes, dtype=np.int64))]
+
+
 def as_keys(codes):
-    return {tuple(int(v) for v in k) for k in morton_decode(np.asarray(codes, dtype=np.int64))}
+    return set(key_list(codes))
+
+
+def inflation_by_key(m: HashVoxelMap) -> dict:
+    counts = m.inflation_counts()
+    return dict(zip(key_list(list(counts)), counts.values()))
 
 
 def brick_table_voxels(m: HashVoxelMap) -> set:
@@ -147,10 +156,10 @@ def brick_table_voxels(m: HashVoxelMap) -> set:
 def check(m: HashVoxelMap, ref: ReferenceMap):
     assert as_keys(m.occupied_codes()) == ref.occupied()
     state = m.state_arrays()  # each voxel's hit and miss counts since it last entered the map
-    keys = [tuple(int(v) for v in k) for k in morton_decode(state["leaf_codes"])]
+    keys = key_list(state["leaf_codes"])
     assert dict(zip(keys, zip(state["hm_hits"].tolist(), state["hm_misses"].tolist()))) == ref.counts()
-    got = m.inflation_counts()
-    assert {tuple(int(v) for v in morton_decode(np.array([c]))[0]): n for c, n in got.items()} == ref.inflation()
+    got = inflation_by_key(m)
+    assert got == ref.inflation()
     assert brick_table_voxels(m) == as_keys(m.leaves().codes)  # exact: no stale or missing voxel
     assert int(m.meta[K.M_NINF]) == len(got)
     # the inflation bricks: each row's non-zero count is right, no brick left all zero, the
@@ -488,12 +497,12 @@ def test_the_golden_snapshot_loads_its_voxels_history_and_inflation():
     from voxtool.io.mapfile import load_map
 
     m, snap = load_map(Path(__file__).resolve().parents[1] / "formats" / "vectors" / "snapshot_hashmap.vxm")
-    keys = [tuple(int(v) for v in k) for k in morton_decode(snap.arrays["leaf_codes"])]
+    keys = key_list(snap.arrays["leaf_codes"])
     want: dict = {}
     for k, radius in zip(keys, snap.arrays["hm_radius"].tolist()):
         for cell in (ReferenceMap(0.1).sphere(k, radius) if radius >= 0 else []):
             want[cell] = want.get(cell, 0) + 1
-    got = {tuple(int(v) for v in morton_decode(np.array([c]))[0]): n for c, n in m.inflation_counts().items()}
+    got = inflation_by_key(m)
     # spheres of radius 2 (33 voxels) and 1 (7) two voxels apart along x share two voxels, counted twice
     assert got == want and len(want) == 33 + 7 - 2 and sorted(want.values())[-3:] == [1, 2, 2]
     state = m.state_arrays()
