@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from voxtool.errors import KeyRangeError
@@ -50,3 +50,31 @@ def test_key_bounds_are_the_per_axis_extremes(keys):
     assert lo.tolist() == [min(k[a] for k in keys) for a in range(3)]
     assert hi.tolist() == [max(k[a] for k in keys) for a in range(3)]
     assert lo.dtype == np.int64 and (hi - lo + 1).min() >= 1  # no uint16 wrap-around in box sizes
+
+
+@settings(deadline=None)  # the first example loads the kernel
+@given(st.integers(0, (1 << 63) - 1), st.lists(st.integers(0, (1 << 63) - 1), max_size=300),
+       st.integers(0, 62), st.integers(0, 62))
+def test_sort_codes_sorts_like_python(base, values, low, high):
+    """The radix sort over only the differing bits: values clustered around `base` (bits between
+    low and high varying, so passes skip shared bits), duplicates, the top bit, empty lists."""
+    from voxtool.kernels.sort import sort_codes
+
+    keep = ((1 << 63) - 1) & ~(((1 << (max(low, high) + 1)) - 1) ^ ((1 << min(low, high)) - 1))
+    a = np.array([(base & keep) | (v & ~keep) for v in values] + values[:3], dtype=np.int64)
+    scratch = np.full(a.shape[0] + 1, -1, np.int64)
+    sort_codes(a, scratch)
+    assert a.tolist() == sorted([(base & keep) | (v & ~keep) for v in values] + values[:3])
+
+
+def test_sort_codes_sorts_a_scans_worth_in_place():
+    from voxtool.kernels.sort import sort_codes
+
+    rng = np.random.default_rng(5)
+    codes = (np.int64(1) << 47) | rng.integers(0, 1 << 30, 20_000) << 1 | rng.integers(0, 2, 20_000)
+    a = codes.copy()
+    sort_codes(a, np.empty(a.shape[0], np.int64))
+    assert np.array_equal(a, np.sort(codes))
+    a = codes[:5].copy()
+    sort_codes(a[1:4], np.empty(3, np.int64))  # a view: the values beyond it stay
+    assert a[0] == codes[0] and a[4] == codes[4] and a[1:4].tolist() == sorted(codes[1:4].tolist())
