@@ -464,13 +464,15 @@ def count_hits(packed):
 
 @njit(cache=True, nogil=True)
 def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_free, R, free, meta, tab,
-                 bkeys, bmask, out_touched, out_changed):
+                 bkeys, bmask, out_touched, out_changed, out_occupied):
     """Alg. 1 + occupancy check over Morton-sorted (code << 1 | hit) updates. Hits create voxels
     (prior l_init); misses update only voxels the occupancy map holds (known-free space is never
-    stored).
-    Returns (n touched, n occ-changed)."""
+    stored). Lists the records touched, those whose occupancy changed, and the codes of the
+    voxels that became occupied (what map sharing sends).
+    Returns (n touched, n occ-changed, n became occupied)."""
     nt = 0
     nc = 0
+    no = 0
     # software pipeline: the home slot of update i + 2 * AHEAD and the record in the slot of
     # update i + AHEAD are on their way while update i is applied (memory latency bounds this
     # loop: random table slots and records; the requests overlap their cache misses)
@@ -520,7 +522,10 @@ def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_fr
         if was_occ != (v.state == 1):
             out_changed[nc] = r
             nc += 1
-    return nt, nc
+            if not was_occ:
+                out_occupied[no] = code
+                no += 1
+    return nt, nc, no
 
 
 # The inflation map (Alg. 2's inflation counts) as 8x8x8 bricks of counts, one row of

@@ -103,6 +103,7 @@ class HashVoxelMap:
         self.removed: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.float32))
         self._set_size = 1 << 14  # de-duplicating sets of the ray casting, one per half scan
         self._bufs: tuple[np.ndarray, ...] | None = None
+        self._update_bufs: tuple[np.ndarray, ...] | None = None
         self._cell_set: tuple[np.ndarray, np.ndarray] | None = None  # discretize's set and its scratch
         self.newly_occupied: np.ndarray = np.zeros(0, np.int64)
 
@@ -277,6 +278,18 @@ class HashVoxelMap:
                           np.empty(parts * run, np.int64), np.empty(parts * run, np.int64))
         return self._bufs
 
+    def _update_buffers(self, updates: int, leaving: int) -> tuple[np.ndarray, ...]:
+        """apply()'s lists, kept from scan to scan: records touched and changed and codes that
+        became occupied (one per update), and the codes and log-odds of voxels that leave the map
+        (room for every voxel touched and in the history)."""
+        if self._update_bufs is None or self._update_bufs[0].shape[0] < updates \
+                or self._update_bufs[3].shape[0] < leaving:
+            updates, leaving = 2 * updates, 2 * leaving  # grown ahead: a busier scan soon after reuses them
+            self._update_bufs = (np.empty(updates, np.int64), np.empty(updates, np.int64),
+                                 np.empty(updates, np.int64), np.empty(leaving, np.int64),
+                                 np.empty(leaving, np.float32))
+        return self._update_bufs
+
     def _trace(self, scan: Scan) -> tuple[np.ndarray, int]:
         """The scan's Morton-sorted (code << 1 | hit) updates that can change this map: every
         endpoint voxel, and the passed-through voxels that may be in the occupancy map; each
@@ -339,12 +352,11 @@ class HashVoxelMap:
         packed, steps = prepared.packed, prepared.steps
         t_cast = time.perf_counter()
         self._reserve(*K.count_hits(packed))
-        touched = np.empty(packed.shape[0], dtype=np.int64)
-        changed = np.empty(packed.shape[0], dtype=np.int64)
-        nt, nc = K.input_update(packed, stamp, *self._model, self.rec, self.free, self.meta, self.tab, self.bkeys,
-                                self.bmask, touched, changed)
-        ch = changed[:nc]
-        self.newly_occupied = self.rec["code"][ch[self.rec["state"][ch] == 1]]
+        touched, changed, occupied, gone_codes, gone_values = self._update_buffers(
+            packed.shape[0], packed.shape[0] + int(self.meta[K.M_HSIZE]))
+        nt, nc, no = K.input_update(packed, stamp, *self._model, self.rec, self.free, self.meta, self.tab,
+                                    self.bkeys, self.bmask, touched, changed, occupied)
+        self.newly_occupied = occupied[:no].copy()
         t1 = time.perf_counter()
         while K.inflate(changed, nc, origin[0], origin[1], origin[2], v["inf_range"], self.params.resolution,
                         self.radius_vox, *self._inflation_args()) < 0:
@@ -352,12 +364,10 @@ class HashVoxelMap:
         t2 = time.perf_counter()
         n_lim = int(v["n_lim"]) if v["n_lim"] >= 0 else INT64_MAX
         oldest = stamp - int(v["ttl"] * 1e9) if v["ttl"] >= 0 else INT64_MIN
-        size = nt + int(self.meta[K.M_HSIZE])
-        gone_codes, gone_values = np.empty(size, np.int64), np.empty(size, np.float32)
         n_gone = K.manage(touched, nt, n_lim, oldest, self.rec, self.free, self.meta, self.tab, self.bkeys,
                           self.bmask, self.offsets, self.offset_start, self.ikeys, self.icounts, self.inz, self.ifree,
                           gone_codes, gone_values)
-        self.removed = (gone_codes[:n_gone], gone_values[:n_gone])
+        self.removed = (gone_codes[:n_gone].copy(), gone_values[:n_gone].copy())
         t3 = time.perf_counter()
         self.scan_metrics.append({"n_occ": int(self.meta[K.M_HSIZE]), "n_inf": int(self.meta[K.M_NINF]),
                                   "t_tot_ms": 1e3 * (prepared.seconds + t3 - t_cast),
