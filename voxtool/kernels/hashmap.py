@@ -157,8 +157,10 @@ def _drop_record(r, R, free, meta, tab):
 
 
 def new_bricks(size: int) -> tuple[np.ndarray, np.ndarray]:
-    """An empty brick table of `size` (a power of two) slots: ids and 512-bit masks."""
-    return np.full(size, EMPTY, dtype=np.int64), np.zeros((size, 8), dtype=np.int64)
+    """An empty brick table of `size` (a power of two) slots: ids and 512-bit masks, with one
+    more mask past the slots that stays all zero: the mask of every absent brick (see
+    brick_row)."""
+    return np.full(size, EMPTY, dtype=np.int64), np.zeros((size + 1, 8), dtype=np.int64)
 
 
 @njit(cache=True, inline="always")
@@ -205,6 +207,20 @@ def _free_slot(keys, b):
 def brick_find(bkeys, b):
     """Slot of brick id b, or -1."""
     return _brick_slot(bkeys, b, 0)
+
+
+@njit(cache=True, inline="always")
+def brick_row(bkeys, b):
+    """The mask row of brick id b: its slot, or the all-zero row past the slots when the table
+    does not hold it. The ray casting asks this at every brick a ray enters; the first probe
+    nearly always decides (the table is at most 1/4 full), and deciding it with a select rather
+    than brick_find's loop spared a mispredicted branch at each of them (docs/design/backends.md)."""
+    s = _brick_home(b, bkeys.shape[0] - 1)
+    k = bkeys[s]
+    if k != b and k != EMPTY:  # another brick in the home slot: probe on
+        s = brick_find(bkeys, b)
+        return s if s >= 0 else bkeys.shape[0]
+    return s if k == b else bkeys.shape[0]
 
 
 @njit(cache=True)
@@ -297,8 +313,8 @@ def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slo
     """One scan's rays with OctoMap's DDA and max-range rule (the same keys as
     kernels.raycast.scan_bricks), keeping what the hash map can use: the endpoint voxels (hits),
     and the voxels rays pass through that the occupancy map holds (misses; a miss elsewhere
-    changes nothing: known-free space is not stored). A ray crossing an 8x8x8 brick that holds
-    no map voxel only steps the DDA. The DDA is written out in scalars, as in scan_bricks,
+    changes nothing: known-free space is not stored). In an 8x8x8 brick that holds no map voxel
+    a step tests the all-zero mask row. The DDA is written out in scalars, as in scan_bricks,
     rather than through raycast's array-based _ray_* helpers: those measured slower here.
 
     Each voxel once, a hit winning over a miss, in `out` as code << 1 | hit, sorted; `seen`
@@ -328,12 +344,11 @@ def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slo
         # every step moves one axis one voxel towards the end key, so the ray can reach it only
         # after exactly this many steps (an axis that overshoots never comes back)
         to_end = abs(ekx - okx) + abs(eky - oky) + abs(ekz - okz)
-        bs = brick_find(bkeys, _brick_id(kx, ky, kz))
+        bs = brick_row(bkeys, _brick_id(kx, ky, kz))
         while True:
-            if bs >= 0:
-                v = _in_brick(kx, ky, kz)
-                if (bmask[bs, v >> 6] >> (v & 63)) & 1 == 1 and n < limit:
-                    n = _set_add(seen, slots, n, morton3(kx, ky, kz) << 1)
+            v = _in_brick(kx, ky, kz)
+            if (bmask[bs, v >> 6] >> (v & 63)) & 1 == 1 and n < limit:
+                n = _set_add(seen, slots, n, morton3(kx, ky, kz) << 1)
             steps += 1
             if tx < ty:
                 if tx < tz:
@@ -359,7 +374,7 @@ def trace_present(points, origin, resolution, max_range, bkeys, bmask, seen, slo
             if min(tx, min(ty, tz)) > length64:
                 break
             if crossed:
-                bs = brick_find(bkeys, _brick_id(kx, ky, kz))
+                bs = brick_row(bkeys, _brick_id(kx, ky, kz))
     for j in range(n):
         out[j] = seen[slots[j]]
         seen[slots[j]] = EMPTY
