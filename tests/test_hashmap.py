@@ -142,7 +142,9 @@ def inflation_by_key(m: HashVoxelMap) -> dict:
 
 
 def brick_table_voxels(m: HashVoxelMap) -> set:
-    """The voxels the ray casting's brick table says the occupancy map holds."""
+    """The voxels the ray casting's brick table says the occupancy map holds (and the mask row
+    that answers for absent bricks is still all zero)."""
+    assert m.bmask.shape[0] == m.bkeys.shape[0] + 1 and not m.bmask[-1].any()
     out = set()
     for slot in np.flatnonzero(m.bkeys >= 0):
         b = int(m.bkeys[slot])
