@@ -160,6 +160,7 @@ def check(m: HashVoxelMap, ref: ReferenceMap):
     state = m.state_arrays()  # each voxel's hit and miss counts since it last entered the map
     keys = key_list(state["leaf_codes"])
     assert dict(zip(keys, zip(state["hm_hits"].tolist(), state["hm_misses"].tolist()))) == ref.counts()
+    assert [keys[i] for i in state["hm_history"]] == ref.history  # the order the oldest leave in
     got = inflation_by_key(m)
     assert got == ref.inflation()
     assert brick_table_voxels(m) == as_keys(m.leaves().codes)  # exact: no stale or missing voxel
