@@ -463,8 +463,9 @@ def merge_updates(a, b, out):
 
 @njit(cache=True, nogil=True)
 def count_hits(packed):
-    """(hits, distinct bricks they fall in) of Morton-sorted updates: the room input_update may
-    need (a brick's voxels are adjacent in Morton order)."""
+    """(hits, distinct bricks they fall in) of Morton-sorted updates: the room the rest of a
+    scan's updates may need when input_update stopped for want of it (a brick's voxels are
+    adjacent in Morton order)."""
     hits = bricks = 0
     last = np.int64(-1)
     for i in range(packed.shape[0]):
@@ -477,27 +478,40 @@ def count_hits(packed):
     return hits, bricks
 
 
+@njit(cache=True, inline="always")
+def _room_for_voxel(R, free, meta, tab, bkeys):
+    """A record, table room and brick-table room for one more voxel (HashVoxelMap._reserve's
+    bounds: the tables at most 1/2 and 1/4 full, tombstones counted)."""
+    return ((meta[M_FREE_TOP] > 0 or meta[M_NEXT] < R.shape[0])
+            and 2 * (meta[M_LIVE] + 1 + meta[M_TOMBS]) <= tab.shape[0]
+            and 4 * (meta[M_BRICKS] + 1 + meta[M_BTOMBS]) <= bkeys.shape[0])
+
+
 @njit(cache=True, nogil=True)
-def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_free, R, free, meta, tab,
-                 bkeys, bmask, out_touched, out_changed, out_occupied):
-    """Alg. 1 + occupancy check over Morton-sorted (code << 1 | hit) updates. Hits create voxels
-    (prior l_init); misses update only voxels the occupancy map holds (known-free space is never
-    stored). Lists the records touched, those whose occupancy changed, and the codes of the
-    voxels that became occupied (what map sharing sends).
-    Returns (n touched, n occ-changed, n became occupied)."""
-    nt = 0
-    nc = 0
-    no = 0
+def input_update(packed, start, counts, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_free, R, free, meta,
+                 tab, bkeys, bmask, out_touched, out_changed, out_occupied):
+    """Alg. 1 + occupancy check over Morton-sorted (code << 1 | hit) updates, from packed[start].
+    Hits create voxels (prior l_init); misses update only voxels the occupancy map holds
+    (known-free space is never stored). Lists the records touched, those whose occupancy
+    changed, and the codes of the voxels that became occupied (what map sharing sends);
+    counts = (n touched, n occ-changed, n became occupied) so far, updated. Returns where it
+    stopped: packed's length, or the first update that needs room for a new voxel (the caller
+    makes room and calls again from there; nothing of that update was applied). Checking room
+    per new voxel spared a pass over the updates before every scan."""
+    nt = counts[0]
+    nc = counts[1]
+    no = counts[2]
     # software pipeline: the home slot of update i + 2 * AHEAD and the record in the slot of
     # update i + AHEAD are on their way while update i is applied (memory latency bounds this
     # loop: random table slots and records; the requests overlap their cache misses)
     mask = tab.shape[0] - 1
     n = packed.shape[0]
-    for i in range(min(2 * AHEAD, n)):
+    for i in range(start, min(start + 2 * AHEAD, n)):
         prefetch(tab, _slot(packed[i] >> 1, mask))
     for j in range(1, min(AHEAD, meta[M_FREE_TOP]) + 1):  # the freed records new voxels will take
         prefetch(R, free[meta[M_FREE_TOP] - j])
-    for i in range(n):
+    stop = n
+    for i in range(start, n):
         if i + 2 * AHEAD < n:
             prefetch(tab, _slot(packed[i + 2 * AHEAD] >> 1, mask))
         if i + AHEAD < n:
@@ -510,6 +524,9 @@ def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_fr
         is_new = False
         if hit:
             if r < 0:  # entering the occupancy map: misses apply from now on
+                if not _room_for_voxel(R, free, meta, tab, bkeys):
+                    stop = i
+                    break
                 if meta[M_FREE_TOP] > AHEAD:
                     prefetch(R, free[meta[M_FREE_TOP] - 1 - AHEAD])
                 r = _new_record(code, l_init, R, free, meta, tab)
@@ -540,7 +557,10 @@ def input_update(packed, stamp, l_init, l_hit, l_miss, l_min, l_max, l_occ, l_fr
             if not was_occ:
                 out_occupied[no] = code
                 no += 1
-    return nt, nc, no
+    counts[0] = nt
+    counts[1] = nc
+    counts[2] = no
+    return stop
 
 
 # The inflation map (Alg. 2's inflation counts) as 8x8x8 bricks of counts, one row of

@@ -225,6 +225,7 @@ class HashVoxelMap:
                 probe.integrate(Scan(np.array([[x, 0.5, 0.25]], dtype=np.float32), np.zeros(3, dtype=np.float32)))
             K.reinflate(np.zeros(0, np.int32), 0, *probe._inflation_args())
         # the table rebuilds run only when a table grows: load them now, not in a timed scan
+        K.count_hits(np.zeros(1, np.int64))
         K.rehash(probe.tab, probe.rec, int(probe.meta[K.M_NEXT]))
         K.ibrick_rehash(probe.ikeys, np.full(probe.ikeys.shape[0], K.EMPTY, np.int64))
         probe.query(np.zeros(1, np.int64))
@@ -351,11 +352,14 @@ class HashVoxelMap:
         self._cast(prepared)
         packed, steps = prepared.packed, prepared.steps
         t_cast = time.perf_counter()
-        self._reserve(*K.count_hits(packed))
         touched, changed, occupied, gone_codes, gone_values = self._update_buffers(
             packed.shape[0], packed.shape[0] + int(self.meta[K.M_HSIZE]))
-        nt, nc, no = K.input_update(packed, stamp, *self._model, self.rec, self.free, self.meta, self.tab,
-                                    self.bkeys, self.bmask, touched, changed, occupied)
+        counts = np.zeros(3, np.int64)
+        done = 0
+        while (done := K.input_update(packed, done, counts, stamp, *self._model, self.rec, self.free, self.meta,
+                                      self.tab, self.bkeys, self.bmask, touched, changed, occupied)) < packed.shape[0]:
+            self._reserve(*K.count_hits(packed[done:]))  # the map grows (by doubling): rare
+        nt, nc, no = (int(c) for c in counts)
         self.newly_occupied = occupied[:no].copy()
         t1 = time.perf_counter()
         while K.inflate(changed, nc, origin[0], origin[1], origin[2], v["inf_range"], self.params.resolution,
