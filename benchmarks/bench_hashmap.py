@@ -58,8 +58,8 @@ def reference() -> dict:
     """How fast the machine runs right now, by two fixed workloads independent of voxtool's code
     (each the best of three): `compute_ms`, 20,000 rays x 500 DDA steps with the axis choice a
     branch, as in the hash map's ray casting (L1-resident); `memory_ns`, one dependent load
-    through a random cycle over 16 MB, about the hash map's working set here (its records and
-    table), so a sitting whose cache is crowded by other tenants shows up here."""
+    through a random cycle over 16 MB, twice the hash map's memory in row a (8 MB: records,
+    tables, bricks), so a sitting whose cache is crowded by other tenants shows up here."""
     import time
 
     import numpy as np

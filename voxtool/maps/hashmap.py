@@ -101,7 +101,7 @@ class HashVoxelMap:
         self.ikeys, self.icounts, self.inz, self.ifree = K.new_inflation(1024, 64, K.count_dtype(self.radius_vox))
         self.scan_metrics: list[dict] = []
         self.removed: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.float32))
-        self._set_size = 1 << 14  # de-duplicating sets of the ray casting, one per half scan
+        self._set_size = 1 << 13  # de-duplicating sets of the ray casting, one per run of rays
         self._bufs: tuple[np.ndarray, ...] | None = None
         self._update_bufs: tuple[np.ndarray, ...] | None = None
         self._cell_set: tuple[np.ndarray, np.ndarray] | None = None  # discretize's set and its scratch
@@ -273,7 +273,7 @@ class HashVoxelMap:
         """The ray casting's de-duplicating sets (all EMPTY; the kernels leave them so) and
         scratch, one row per run of rays, kept from scan to scan."""
         if self._bufs is None or self._bufs[0].shape != (parts, size):
-            run = size // 2 + 1
+            run = K.set_limit(size) + 1
             self._bufs = (np.full((parts, size), K.EMPTY, dtype=np.int64), np.empty((parts, run), np.int64),
                           np.empty((parts, run), np.int64), np.zeros((parts, 2), np.int64),
                           np.empty(parts * run, np.int64), np.empty(parts * run, np.int64))
