@@ -403,6 +403,28 @@ def test_snapshot_asking_for_absurd_inflation_is_refused(tmp_path):
         load_map(tmp_path / "bad.vxm")
 
 
+def test_snapshot_whose_inflation_would_fill_too_many_bricks_is_refused(tmp_path, monkeypatch):
+    """Few sphere cells can still ask for many bricks: voxels one a brick, each with its own
+    row of counts. Loading stops when the counts would pass their bound (a small one here)."""
+    import voxtool.maps.hashmap as hashmap_module
+    from voxtool.errors import FormatError
+    from voxtool.io.mapfile import load_map, save_map
+
+    m = HashVoxelMap(MapParams(0.1), S, d_inf=0.1)  # radius 1: 7 cells, in 1-4 bricks
+    rng = np.random.default_rng(4)
+    points = (rng.integers(-40, 40, (400, 3)) * 1.6 + 0.05).astype(np.float32)  # 16 voxels apart
+    m.integrate(Scan(points, np.zeros(3, np.float32)))
+    save_map(tmp_path / "h.vxm", m, {})
+    bricks = int(m.meta[K.M_IBRICKS])
+    assert bricks > 300  # the spheres lie in bricks of their own
+    monkeypatch.setattr(hashmap_module, "MAX_LOAD_INFLATION_BYTES", 64 * 512)
+    with pytest.raises(FormatError, match="bytes of inflation counts"):
+        load_map(tmp_path / "h.vxm")
+    monkeypatch.setattr(hashmap_module, "MAX_LOAD_INFLATION_BYTES", 4 * bricks * 512)
+    loaded, _ = load_map(tmp_path / "h.vxm")
+    assert inflation_by_key(loaded) == inflation_by_key(m)
+
+
 def test_more_records_than_the_table_addresses_is_a_clear_error(monkeypatch):
     from voxtool.errors import ParameterError
 

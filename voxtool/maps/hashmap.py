@@ -31,9 +31,12 @@ RAYS_PER_PART = 250
 
 SCHEDULABLE = ("p_init", "n_lim", "d_in", "d_inf", "inf_range", "ttl")
 # a snapshot stores each voxel's inflation radius; loading re-inflates. A file asking for more
-# than this many sphere cells (count updates) is refused rather than run for minutes; the bricks
-# they fill take at most a row (512 B or 2 KB) a cell; the shared data fill 17-128 cells a row.
+# than this many sphere cells (count updates) is refused rather than run for minutes, and one
+# whose spheres would fill more than MAX_LOAD_INFLATION_BYTES of bricks is refused when they
+# reach it: a brick takes a row (512 B or 2 KB) for as little as one cell (voxels scattered one
+# a brick), where the shared data fill 17-128 cells a row.
 MAX_LOAD_INFLATION = 1 << 27
+MAX_LOAD_INFLATION_BYTES = 1 << 31
 INT64_MAX, INT64_MIN = int(np.iinfo(np.int64).max), int(np.iinfo(np.int64).min)
 # numba's fallback threading layer (workqueue, where neither OpenMP nor TBB loads) aborts the
 # process when two threads launch parallel kernels at once: maps in several threads take turns
@@ -186,13 +189,19 @@ class HashVoxelMap:
             self.bkeys, self.bmask = bkeys, bmask
             self.meta[K.M_BTOMBS] = 0
 
-    def _inflation_room(self, bricks: int) -> None:
+    def _inflation_room(self, bricks: int, max_bytes: int = -1) -> None:
         """Room in the inflation map for `bricks` more bricks: rows of counts (doubling) and its
-        table at most 1/4 full (1/8 after growing), as the brick table above."""
+        table at most 1/4 full (1/8 after growing), as the brick table above. A snapshot load
+        passes max_bytes: counts that would grow past it are the file's error."""
         rows = self.icounts.shape[0]
         free_rows = rows - int(self.meta[K.M_INEXT]) + int(self.meta[K.M_IFREE_TOP])
         if free_rows < bricks:
             grown = max(2 * rows, rows + bricks)
+            if 0 <= max_bytes < grown * self.icounts[0].nbytes:
+                from voxtool.errors import FormatError
+
+                raise FormatError(f"hashmap snapshot: rebuilding its inflation would take more than "
+                                  f"{max_bytes:,} bytes of inflation counts ({grown:,} bricks)")
             if grown > K.ROW_MASK + 1:
                 raise ParameterError(f"hashmap: the inflation map would need {grown} bricks, more than the "
                                      f"{K.ROW_MASK + 1} its table addresses; lower d_inf or inf_range")
@@ -498,7 +507,7 @@ class HashVoxelMap:
         radius = radius.astype(np.int32)
         done = 0
         while (done := K.reinflate(radius, done, *self._inflation_args())) < n:
-            self._inflation_room(K.bricks_per_sphere(int(radius[done])))
+            self._inflation_room(K.bricks_per_sphere(int(radius[done])), MAX_LOAD_INFLATION_BYTES)
 
     def extra_meta(self) -> dict[str, Any]:
         return {k: self.values[k] for k in SCHEDULABLE} | {"p_free": self.p_free, "discretize": self.discretize}
