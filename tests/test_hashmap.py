@@ -386,6 +386,16 @@ def test_schedule_in_the_build_pipeline_equals_scan_by_scan(tmp_path, monkeypatc
     assert piped.scan_metrics[1]["n_occ"] > 150 >= max(m["n_occ"] for m in piped.scan_metrics[2:6])
 
 
+def test_sphere_sizes_count_the_offsets_brute_force_lists():
+    from voxtool.maps.hashmap import sphere_offsets, sphere_sizes
+
+    offsets, start = sphere_offsets(24)
+    assert np.array_equal(sphere_sizes(24), np.diff(start))
+    g = np.arange(-24, 25)
+    d2 = g[:, None, None] ** 2 + g[None, :, None] ** 2 + g[None, None, :] ** 2
+    assert [int((d2 <= r * r).sum()) for r in (0, 1, 2, 24)] == list(sphere_sizes(24)[[0, 1, 2, 24]])
+
+
 def test_snapshot_asking_for_absurd_inflation_is_refused(tmp_path):
     from voxtool.errors import FormatError
     from voxtool.io.mapfile import load_map, save_map
