@@ -31,6 +31,12 @@ EMPTY = -1
 TOMB = -2
 NOT_IN_HISTORY = -2
 AHEAD = 8  # look-ups a software pipeline requests ahead of use
+# How full the open-addressing tables may get, tombstones counted: the record table 1/2, the
+# brick tables (occupancy and inflation) 1/4. The kernels' room checks (_room_for_voxel,
+# inflation_room) and HashVoxelMap's growth (_reserve, _inflation_room) both read these: a kernel
+# stops when a check fails, the map grows, the kernel resumes, which ends only while they agree.
+RECORD_TABLE_LOAD = 2
+BRICK_TABLE_LOAD = 4
 MAX_RECORDS = (1 << 31) - 1  # table slots hold int32 record numbers (128 GiB of records)
 # meta fields: history head / tail / size, free-list top, live records, tombstones, next unused
 # record, voxels with inflation count > 0, bricks and brick tombstones of the brick table; the
@@ -489,11 +495,10 @@ def count_hits(packed):
 
 @njit(cache=True, inline="always")
 def _room_for_voxel(R, free, meta, tab, bkeys):
-    """A record, table room and brick-table room for one more voxel (HashVoxelMap._reserve's
-    bounds: the tables at most 1/2 and 1/4 full, tombstones counted)."""
+    """A record, table room and brick-table room for one more voxel (the loads above)."""
     return ((meta[M_FREE_TOP] > 0 or meta[M_NEXT] < R.shape[0])
-            and 2 * (meta[M_LIVE] + 1 + meta[M_TOMBS]) <= tab.shape[0]
-            and 4 * (meta[M_BRICKS] + 1 + meta[M_BTOMBS]) <= bkeys.shape[0])
+            and RECORD_TABLE_LOAD * (meta[M_LIVE] + 1 + meta[M_TOMBS]) <= tab.shape[0]
+            and BRICK_TABLE_LOAD * (meta[M_BRICKS] + 1 + meta[M_BTOMBS]) <= bkeys.shape[0])
 
 
 @njit(cache=True, nogil=True)
@@ -634,9 +639,9 @@ def _ibrick_drop(ikeys, b, row, meta, ifree):
 
 @njit(cache=True, inline="always")
 def inflation_room(ikeys, icounts, meta, bricks):
-    """Whether `bricks` more bricks fit: free rows, and the table at most 1/4 full with them."""
+    """Whether `bricks` more bricks fit: free rows, and the table within BRICK_TABLE_LOAD."""
     rows = icounts.shape[0] - meta[M_INEXT] + meta[M_IFREE_TOP]
-    return rows >= bricks and 4 * (meta[M_IBRICKS] + meta[M_ITOMBS] + bricks) <= ikeys.shape[0]
+    return rows >= bricks and BRICK_TABLE_LOAD * (meta[M_IBRICKS] + meta[M_ITOMBS] + bricks) <= ikeys.shape[0]
 
 
 @njit(cache=True)

@@ -183,8 +183,8 @@ class HashVoxelMap:
             self.free = f
         live = int(self.meta[K.M_LIVE]) + new_records
         size = self.tab.shape[0]
-        if 2 * (live + int(self.meta[K.M_TOMBS])) > size:
-            while 2 * live > size // 2:
+        if K.RECORD_TABLE_LOAD * (live + int(self.meta[K.M_TOMBS])) > size:
+            while 2 * K.RECORD_TABLE_LOAD * live > size:  # grown to half the bound: room to fill
                 size *= 2
             self.tab = K.new_table(size)
             K.rehash(self.tab, self.rec, int(self.meta[K.M_NEXT]))
@@ -194,8 +194,8 @@ class HashVoxelMap:
         # kept sparse (at most 1/4 full, 1/8 after growing): every ray crossing into a brick looks
         # it up, and short probe chains keep those look-ups predictable (measured ~7 % of the ray
         # casting against 1/2 full); 1,600 bricks take 1.2 MB
-        if 4 * (bricks + int(self.meta[K.M_BTOMBS])) > size:
-            while 8 * bricks > size:
+        if K.BRICK_TABLE_LOAD * (bricks + int(self.meta[K.M_BTOMBS])) > size:
+            while 2 * K.BRICK_TABLE_LOAD * bricks > size:
                 size *= 2
             bkeys, bmask = K.new_bricks(size)
             K.brick_rehash(self.bkeys, self.bmask, bkeys, bmask)
@@ -204,7 +204,7 @@ class HashVoxelMap:
 
     def _inflation_room(self, bricks: int, max_bytes: int = -1) -> None:
         """Room in the inflation map for `bricks` more bricks: rows of counts (doubling) and its
-        table at most 1/4 full (1/8 after growing), as the brick table above. A snapshot load
+        table within K.BRICK_TABLE_LOAD (half that after growing), as the brick table above. A snapshot load
         passes max_bytes: counts that would grow past it are the file's error."""
         rows = self.icounts.shape[0]
         free_rows = rows - int(self.meta[K.M_INEXT]) + int(self.meta[K.M_IFREE_TOP])
@@ -225,8 +225,8 @@ class HashVoxelMap:
             self.icounts, self.inz, self.ifree = counts, nz, free
         live = int(self.meta[K.M_IBRICKS]) + bricks
         size = self.ikeys.shape[0]
-        if 4 * (live + int(self.meta[K.M_ITOMBS])) > size:
-            while 8 * live > size:
+        if K.BRICK_TABLE_LOAD * (live + int(self.meta[K.M_ITOMBS])) > size:
+            while 2 * K.BRICK_TABLE_LOAD * live > size:
                 size *= 2
             ikeys = np.full(size, K.EMPTY, np.int64)
             K.ibrick_rehash(self.ikeys, ikeys)
