@@ -20,19 +20,23 @@ SHARD_DEPTH = 8
 
 def random_tree(rng, max_depth=10) -> Leaves:
     """Canonical leaves of a random tree below a few depth-3 nodes: nodes split with a chance
-    that falls with depth; leaf values from a small set, so that siblings often prune."""
+    that falls with depth; leaf values from a small set, so that siblings often prune. The
+    draws come from Python's random, seeded by `rng`: numpy's scalar draws took most of the time."""
+    import random
+
+    draw = random.Random(int(rng.integers(1 << 32)))
     codes, depths, values = [], [], []
 
     def grow(code, depth):
-        if depth < max_depth and (depth < 4 or rng.random() < (0.8 if depth < SHARD_DEPTH else 0.3)):
+        if depth < max_depth and (depth < 4 or draw.random() < (0.8 if depth < SHARD_DEPTH else 0.3)):
             step = 1 << (3 * (15 - depth))
             for j in range(8):
-                if rng.random() < 0.85:
+                if draw.random() < 0.85:
                     grow(code + j * step, depth + 1)
             return
         codes.append(code)
         depths.append(depth)
-        values.append(rng.choice([-2.0, 0.5, 3.5]))
+        values.append(draw.choice((-2.0, 0.5, 3.5)))
 
     for top in rng.choice(8 ** 3, size=1, replace=False):
         grow(int(top) << (3 * 13), 3)
