@@ -264,7 +264,7 @@ def test_pcd_directory_takes_its_scan_times_from_poses_txt_beside(tmp_path):
     for s, vp in zip(scans, viewpoint):
         assert np.allclose(s.origin, vp, atol=1e-6)
     # a packet log of the directory is stamped with them
-    code, out, err = cli("encode", d, "-o", tmp_path / "r.mcap", "--max-changes", 1, "--json", "--no-progress")
+    code, out, err = cli("encode", d, "-o", tmp_path / "r.mcap", "--max-changes", 500, "--json", "--no-progress")
     assert code == 0, err
     assert json.loads(out)["packets"] >= 3
     from voxtool.codec.fusion import packets_of
