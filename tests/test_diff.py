@@ -41,8 +41,8 @@ def exported_states(path, tmp):
         out = tmp / f"{path.stem}-{what}.ply"
         code, _, err = cli("export", path, "-o", out, *extra)
         assert code == 0, err
-        for p in np.asarray(o3d.io.read_point_cloud(str(out)).points):
-            states[tuple(np.round(p * 1000).astype(int))] = what  # the occupied pass overwrites
+        centres = np.round(np.asarray(o3d.io.read_point_cloud(str(out)).points) * 1000).astype(np.int64)
+        states.update((tuple(c), what) for c in centres.tolist())  # the occupied pass overwrites
     return states
 
 
