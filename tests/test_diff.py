@@ -61,8 +61,8 @@ def test_diff_lists_exactly_the_voxels_whose_state_differs(street_maps, tmp_path
             truth[f"{was}_to_{now}"] = truth.get(f"{was}_to_{now}", 0) + 1
     assert report["changes"] == {k: truth.get(k, 0) for k in report["changes"]}
     assert report["changed_voxels"] == sum(truth.values()) > 1000
-    changed = {tuple(np.round(p * 1000).astype(int))
-               for p in np.asarray(o3d.io.read_point_cloud(str(tmp_path / "changed.ply")).points)}
+    points = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "changed.ply")).points)
+    changed = {tuple(c) for c in np.round(points * 1000).astype(np.int64).tolist()}
     assert changed == {k for k in sa.keys() | sb.keys() if sa.get(k, "unknown") != sb.get(k, "unknown")}
     box = np.array([report["changed_bbox"]["min"], report["changed_bbox"]["max"]]) * 1000
     centres = np.array(sorted(changed))
