@@ -27,9 +27,7 @@ import time
 from pathlib import Path
 
 from report import write_report
-
-ROOT = Path(__file__).resolve().parents[1]
-
+from worktree import ROOT, check_imports, revision
 
 SAME_ARRAYS = """import sys
 import numpy as np
@@ -79,40 +77,32 @@ def main() -> None:
         if not source.is_dir():
             sys.exit(f"{source}: not found (--data names the shared datasets' folder)")
         cases.append((name, float(res or 0.2), source))
-    with tempfile.TemporaryDirectory(prefix="voxtool-ab-") as tmp:
-        base = Path(tmp) / "base"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-q", str(base), args.base], check=True)
-        try:
-            sides = {args.base: base, "this checkout": ROOT}
-            rows = []
-            for tree in sides.values():
-                check = subprocess.run([sys.executable, "-c", "import voxtool; print(voxtool.__file__)"], text=True,
-                                       capture_output=True, env={**os.environ, "PYTHONPATH": str(tree)}, cwd=tmp)
-                if not check.stdout.startswith(str(tree)):
-                    sys.exit(f"{tree}: python imports voxtool from {check.stdout.strip()} instead")
-            for name, res, source in cases:
-                for tree in sides.values():  # numba compiles (or loads) each tree's kernels once
-                    timed_build(tree, source, res, Path(tmp) / "warm.vxm")
-                runs: dict[str, list] = {side: [] for side in sides}
-                for _ in range(args.runs):
-                    outs = []
-                    for side, tree in sides.items():
-                        out = Path(tmp) / f"{len(outs)}.vxm"
-                        runs[side].append({**timed_build(tree, source, res, out), "bytes": out.stat().st_size})
-                        outs.append(out)
-                    if outs[0].read_bytes() != outs[1].read_bytes() and not same_arrays(*outs):
-                        sys.exit(f"{name} at {res} m: the two sides wrote different maps")
-                for side, got in runs.items():
-                    walls = [r["wall_s"] for r in got]
-                    rows.append({"dataset": name, "resolution": res, "side": side, "wall_best_s": round(min(walls), 3),
-                                 "wall_median_s": round(statistics.median(walls), 3),
-                                 "peak_rss_mib": round(max(r["peak_rss_mib"] for r in got), 1),
-                                 "snapshot_mib": round(got[-1]["bytes"] / 2**20, 2),
-                                 **{k: round(statistics.median(r[k] for r in got), 3)
-                                    for k in ("startup_s", "stats_write_s", "loop_s")}})
-                    print(json.dumps(rows[-1]), file=sys.stderr)
-        finally:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(base)], check=False)
+    with tempfile.TemporaryDirectory(prefix="voxtool-ab-") as tmp, revision(args.base, Path(tmp)) as base:
+        sides = {args.base: base, "this checkout": ROOT}
+        rows = []
+        for tree in sides.values():
+            check_imports(tree, Path(tmp))
+        for name, res, source in cases:
+            for tree in sides.values():  # numba compiles (or loads) each tree's kernels once
+                timed_build(tree, source, res, Path(tmp) / "warm.vxm")
+            runs: dict[str, list] = {side: [] for side in sides}
+            for _ in range(args.runs):
+                outs = []
+                for side, tree in sides.items():
+                    out = Path(tmp) / f"{len(outs)}.vxm"
+                    runs[side].append({**timed_build(tree, source, res, out), "bytes": out.stat().st_size})
+                    outs.append(out)
+                if outs[0].read_bytes() != outs[1].read_bytes() and not same_arrays(*outs):
+                    sys.exit(f"{name} at {res} m: the two sides wrote different maps")
+            for side, got in runs.items():
+                walls = [r["wall_s"] for r in got]
+                rows.append({"dataset": name, "resolution": res, "side": side, "wall_best_s": round(min(walls), 3),
+                             "wall_median_s": round(statistics.median(walls), 3),
+                             "peak_rss_mib": round(max(r["peak_rss_mib"] for r in got), 1),
+                             "snapshot_mib": round(got[-1]["bytes"] / 2**20, 2),
+                             **{k: round(statistics.median(r[k] for r in got), 3)
+                                for k in ("startup_s", "stats_write_s", "loop_s")}})
+                print(json.dumps(rows[-1]), file=sys.stderr)
     print(f"wrote {write_report(rows, list(rows[0]), args.out, base=args.base, runs=args.runs)}")
 
 
