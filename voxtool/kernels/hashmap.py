@@ -179,6 +179,13 @@ def _in_brick(kx, ky, kz):
     return (kx & 7) | ((ky & 7) << 3) | ((kz & 7) << 6)
 
 
+def brick_cell_keys(bricks: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """The keys (n x 3) of cell cells[i] of brick id bricks[i]: _brick_id and _in_brick undone,
+    for the map's views (inflation_counts)."""
+    return np.stack([((bricks >> 26) << 3) | (cells & 7), (((bricks >> 13) & 8191) << 3) | ((cells >> 3) & 7),
+                     ((bricks & 8191) << 3) | (cells >> 6)], axis=1)
+
+
 @njit(cache=True, inline="always")
 def _brick_home(b, mask):
     return ((b * _MULT) >> 24) & mask

@@ -204,8 +204,8 @@ class HashVoxelMap:
 
     def _inflation_room(self, bricks: int, max_bytes: int = -1) -> None:
         """Room in the inflation map for `bricks` more bricks: rows of counts (doubling) and its
-        table within K.BRICK_TABLE_LOAD (half that after growing), as the brick table above. A snapshot load
-        passes max_bytes: counts that would grow past it are the file's error."""
+        table within K.BRICK_TABLE_LOAD (half that after growing), as the brick table above. A
+        snapshot load passes max_bytes: counts that would grow past it are the file's error."""
         rows = self.icounts.shape[0]
         free_rows = rows - int(self.meta[K.M_INEXT]) + int(self.meta[K.M_IFREE_TOP])
         if free_rows < bricks:
@@ -430,12 +430,10 @@ class HashVoxelMap:
         from voxtool.keys import morton_encode
 
         keys = self.ikeys[self.ikeys >= 0]
-        bricks, rows = keys >> K.ROW_BITS, keys & K.ROW_MASK
-        at, cell = np.nonzero(self.icounts[rows])
-        b = bricks[at]
-        xyz = np.stack([((b >> 26) << 3) | (cell & 7), (((b >> 13) & 8191) << 3) | ((cell >> 3) & 7),
-                        ((b & 8191) << 3) | (cell >> 6)], axis=1)
-        return dict(zip(morton_encode(xyz).tolist(), self.icounts[rows][at, cell].tolist()))
+        counts = self.icounts[keys & K.ROW_MASK]
+        at, cell = np.nonzero(counts)
+        codes = morton_encode(K.brick_cell_keys((keys >> K.ROW_BITS)[at], cell))
+        return dict(zip(codes.tolist(), counts[at, cell].tolist()))
 
     def n_inflated(self) -> int:
         return int(self.meta[K.M_NINF])
