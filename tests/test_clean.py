@@ -107,7 +107,8 @@ def test_void_evidence_is_each_ray_up_to_the_first_hit_segment_away_from_every_h
 def test_balls_marked_by_whole_words_equal_balls_marked_bit_by_bit(radius):
     """near_hits_table's ball table (ball_brick_masks: a ball as words of the bricks around a
     voxel's own) marks exactly the voxels the per-offset loop marks, at the key range's edges too."""
-    from voxtool.kernels.clean import NO_BALL_TABLE, ball_brick_masks, ball_offsets, near_hits_table
+    from voxtool.kernels.ball import ball_offsets
+    from voxtool.kernels.clean import NO_BALL_TABLE, ball_brick_masks, near_hits_table
     from voxtool.keys import coords_to_keys, morton_encode, unique_codes
 
     rng = np.random.default_rng(radius)

@@ -314,9 +314,9 @@ def test_scheduler_address_runs_on_a_cluster_started_by_dask_commands(tmp_path, 
         rows = json.loads(text)["rows"]
         assert code == 0 and [r["result"]["occupied_voxels"] for r in rows] == [built["occupied_voxels"]] * 2
     finally:
-        for p in procs:
+        # the workers first: without their scheduler they retry to reach it for seconds
+        for p in reversed(procs):
             p.terminate()
-        for p in procs:
             p.wait(30)
     # addresses that are not addresses, and nobody listening (Dask retries until
     # VOXTOOL_CONNECT_TIMEOUT, 10 s by default), last: the Client that failed to connect closes

@@ -386,14 +386,41 @@ def test_schedule_in_the_build_pipeline_equals_scan_by_scan(tmp_path, monkeypatc
     assert piped.scan_metrics[1]["n_occ"] > 150 >= max(m["n_occ"] for m in piped.scan_metrics[2:6])
 
 
-def test_sphere_sizes_count_the_offsets_brute_force_lists():
+def test_spheres_are_built_for_the_radii_in_use_and_counted_alike():
+    """sphere_offsets lists, per radius asked, the offsets |o| <= r of a brute-force cube (in the
+    kernels' order: z fastest) and nothing for the radii not asked; sphere_sizes counts them
+    without listing."""
     from voxtool.maps.hashmap import sphere_offsets, sphere_sizes
 
-    offsets, start = sphere_offsets(24)
-    assert np.array_equal(sphere_sizes(24), np.diff(start))
+    offsets, start = sphere_offsets({0, 2, 24})
     g = np.arange(-24, 25)
-    d2 = g[:, None, None] ** 2 + g[None, :, None] ** 2 + g[None, None, :] ** 2
-    assert [int((d2 <= r * r).sum()) for r in (0, 1, 2, 24)] == list(sphere_sizes(24)[[0, 1, 2, 24]])
+    cube = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+    for r in range(25):
+        got = offsets[start[r]:start[r + 1]]
+        want = cube[(cube * cube).sum(axis=1) <= r * r] if r in (0, 2, 24) else np.zeros((0, 3))
+        assert np.array_equal(got, want), r
+        assert (cube * cube).sum(axis=1).__le__(r * r).sum() == sphere_sizes(24)[r]
+    assert offsets.dtype == np.int8 and start.shape == (26,)
+
+
+def test_radii_scheduled_down_and_up_each_keep_their_spheres():
+    """Spheres are built as radii come (3, then 1, then 2): a voxel inflated with an earlier
+    radius still deflates its own sphere, scan after scan as the brute force."""
+    schedule = [(2, "d_inf", 0.1), (4, "d_inf", 0.2)]
+    m = HashVoxelMap(MapParams(0.1), S, n_lim=80, d_inf=0.3, schedule=schedule)
+    ref = ReferenceMap(0.1, n_lim=80, d_inf=0.3)
+    radii = []
+    for i, scan in enumerate(world_scans(7, 120, seed=8)):
+        scan.index = i
+        for at, key, value in schedule:
+            if at == i:
+                ref.p[key] = value
+        m.integrate(scan)
+        ref.integrate(scan.points, scan.origin)
+        check(m, ref)
+        radii.append(sorted(m.sphere_radii))
+    assert radii == [[3], [3], [1, 3], [1, 3], [1, 2, 3], [1, 2, 3], [1, 2, 3]]
+    assert m.offsets.shape[0] == sum(int(np.diff(m.offset_start)[r]) for r in (1, 2, 3))
 
 
 def test_snapshot_asking_for_absurd_inflation_is_refused(tmp_path):

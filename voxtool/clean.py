@@ -129,11 +129,11 @@ class VoidMap:
     name = "void"
 
     def __init__(self, params: CleanParams, threads: int = 0) -> None:
+        from voxtool.kernels.ball import ball_offsets
         from voxtool.kernels.clean import (
             BALL_TABLE_RADIUS,
             NO_BALL_TABLE,
             ball_brick_masks,
-            ball_offsets,
             cube_brick_table,
         )
 

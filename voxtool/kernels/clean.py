@@ -46,29 +46,6 @@ def _brick_row(keys, brick, mask, insert):
     return -2, False
 
 
-@njit(cache=True, nogil=True)
-def ball_offsets(radius):
-    """(n, 3) integer offsets of the voxels within `radius` voxels (Euclidean, centre included)."""
-    r = int(radius)
-    n = 0
-    for dx in range(-r, r + 1):
-        for dy in range(-r, r + 1):
-            for dz in range(-r, r + 1):
-                if dx * dx + dy * dy + dz * dz <= r * r:
-                    n += 1
-    out = np.empty((n, 3), dtype=np.int64)
-    k = 0
-    for dx in range(-r, r + 1):
-        for dy in range(-r, r + 1):
-            for dz in range(-r, r + 1):
-                if dx * dx + dy * dy + dz * dz <= r * r:
-                    out[k, 0] = dx
-                    out[k, 1] = dy
-                    out[k, 2] = dz
-                    k += 1
-    return out
-
-
 SEGMENT_SAMPLES_PER_VOXEL = 4  # samples along a hit's segment per voxel edge
 _XYZ = np.arange(512, dtype=np.int64)
 # the 9-bit Morton index inside a brick of x + 8 y + 64 z (x in bits 0, 3, 6: kernels.morton)

@@ -15,6 +15,7 @@ import numpy as np
 from voxtool.config import MapParams, SensorModel, logodds
 from voxtool.errors import ParameterError
 from voxtool.kernels import hashmap as K
+from voxtool.kernels.ball import ball_offsets
 from voxtool.kernels.raycast import balanced_cuts
 from voxtool.keys import coords_to_keys
 from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
@@ -71,16 +72,13 @@ def sphere_sizes(max_radius: int) -> np.ndarray:
     return sizes
 
 
-def sphere_offsets(max_radius: int) -> tuple[np.ndarray, np.ndarray]:
-    """Integer offsets with |o| <= r, grouped by r = 0..max_radius: rows start[r]:start[r+1]."""
-    rows, start = [], [0]
-    for r in range(max_radius + 1):
-        g = np.arange(-r, r + 1)
-        o = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
-        o = o[(o * o).sum(axis=1) <= r * r]
-        rows.append(o)
-        start.append(start[-1] + o.shape[0])
-    return np.concatenate(rows).astype(np.int64), np.array(start, dtype=np.int64)
+def sphere_offsets(radii: set[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Integer offsets with |o| <= r for each radius r in `radii`, grouped by r = 0..max(radii):
+    rows start[r]:start[r+1], empty for a radius no voxel has. int8 (r <= K.MAX_RADIUS): radius
+    64 alone is 1.1 M offsets, 3.4 MB (listing every radius up to 64 in int64 took 435 MB)."""
+    groups = [ball_offsets(r) if r in radii else np.zeros((0, 3), np.int64) for r in range(max(radii) + 1)]
+    start = np.cumsum([0] + [g.shape[0] for g in groups])
+    return np.concatenate(groups).astype(np.int8), start.astype(np.int64)
 
 
 class HashVoxelMap:
@@ -104,7 +102,7 @@ class HashVoxelMap:
         self.p_free = p_free
         self.values: dict[str, float] = {}
         self.icounts: np.ndarray | None = None  # the inflation map's counts (below), widened by set_params
-        self.offsets, self.offset_start = sphere_offsets(0)
+        self.sphere_radii: set[int] = set()  # the radii voxels inflate with: their offsets are built
         self.set_params(p_init=p_init, n_lim=n_lim, d_in=d_in, d_inf=d_inf, inf_range=inf_range, ttl=ttl)
         self.schedule = sorted((int(i), str(k), self._checked(str(k), v)) for i, k, v in (schedule or []))
         self.period_ns = int(1e9 / rate_hz)
@@ -149,9 +147,14 @@ class HashVoxelMap:
         sm = self.sensor  # the input update's float32 constants, converted once per change
         self._model = tuple(np.float32(x) for x in (logodds(v["p_init"]), sm.hit_log, sm.miss_log, sm.clamp_min_log,
                                                     sm.clamp_max_log, sm.threshold_log, logodds(self.p_free)))
-        if self.radius_vox + 1 >= self.offset_start.shape[0]:
-            self.offsets, self.offset_start = sphere_offsets(self.radius_vox)
+        self._build_spheres({self.radius_vox})
         self._widen_counts(self.radius_vox)
+
+    def _build_spheres(self, radii: set[int]) -> None:
+        """Offsets for spheres of these radii too (voxels keep the radius they inflated with)."""
+        if not radii <= self.sphere_radii:
+            self.sphere_radii |= radii
+            self.offsets, self.offset_start = sphere_offsets(self.sphere_radii)
 
     def _widen_counts(self, radius: int) -> None:
         """Inflation counts wide enough for spheres of `radius` (never narrowed: voxels keep the
@@ -506,8 +509,7 @@ class HashVoxelMap:
         if cells > MAX_LOAD_INFLATION:
             raise FormatError(f"hashmap snapshot: rebuilding its inflation would touch {cells:,} voxels "
                               f"(more than {MAX_LOAD_INFLATION:,})")
-        if max_r + 1 >= self.offset_start.shape[0]:
-            self.offsets, self.offset_start = sphere_offsets(max_r)
+        self._build_spheres({int(r) for r in np.unique(radius[radius >= 0])})
         self._widen_counts(max_r)
         self._reserve(n, int(np.unique(codes >> 9).shape[0]))
         K.load_records(codes, values, np.float32(self.sensor.threshold_log), np.float32(logodds(self.p_free)),
