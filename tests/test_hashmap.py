@@ -229,18 +229,23 @@ def test_a_box_that_leaves_deflates_as_the_brute_force_does():
     assert not as_keys(m.occupied_codes()) & box_keys
 
 
-def test_parameter_schedule_takes_effect_mid_stream():
-    schedule = [(3, "n_lim", 40), (4, "d_inf", 0.3), (5, "p_init", 0.7), (6, "d_in", 2.0)]
-    m = HashVoxelMap(MapParams(0.1), S, n_lim=-1, d_inf=0.1, schedule=schedule)
-    ref = ReferenceMap(0.1, n_lim=-1, d_inf=0.1)
-    for i, scan in enumerate(world_scans(9, 120, seed=5)):
+def scheduled_as_brute_force(schedule, scans, **kw):
+    """The hash map with `schedule` against the brute force told the same changes at the same
+    scans, checked after every scan; yields (scan index, map)."""
+    m = HashVoxelMap(MapParams(0.1), S, schedule=schedule, **kw)
+    ref = ReferenceMap(0.1, **kw)
+    for i, scan in enumerate(scans):
         scan.index = i
-        for at, key, value in schedule:
-            if at == i:
-                ref.p[key] = value
+        ref.p.update({key: value for at, key, value in schedule if at == i})
         m.integrate(scan)
         ref.integrate(scan.points, scan.origin)
         check(m, ref)
+        yield i, m
+
+
+def test_parameter_schedule_takes_effect_mid_stream():
+    schedule = [(3, "n_lim", 40), (4, "d_inf", 0.3), (5, "p_init", 0.7), (6, "d_in", 2.0)]
+    for i, m in scheduled_as_brute_force(schedule, world_scans(9, 120, seed=5), n_lim=-1, d_inf=0.1):
         if i >= 3:
             assert len(m.occupied_codes()) <= 40
 
@@ -407,17 +412,8 @@ def test_radii_scheduled_down_and_up_each_keep_their_spheres():
     """Spheres are built as radii come (3, then 1, then 2): a voxel inflated with an earlier
     radius still deflates its own sphere, scan after scan as the brute force."""
     schedule = [(2, "d_inf", 0.1), (4, "d_inf", 0.2)]
-    m = HashVoxelMap(MapParams(0.1), S, n_lim=80, d_inf=0.3, schedule=schedule)
-    ref = ReferenceMap(0.1, n_lim=80, d_inf=0.3)
     radii = []
-    for i, scan in enumerate(world_scans(7, 120, seed=8)):
-        scan.index = i
-        for at, key, value in schedule:
-            if at == i:
-                ref.p[key] = value
-        m.integrate(scan)
-        ref.integrate(scan.points, scan.origin)
-        check(m, ref)
+    for _, m in scheduled_as_brute_force(schedule, world_scans(7, 120, seed=8), n_lim=80, d_inf=0.3):
         radii.append(sorted(m.sphere_radii))
     assert radii == [[3], [3], [1, 3], [1, 3], [1, 2, 3], [1, 2, 3], [1, 2, 3]]
     assert m.offsets.shape[0] == sum(int(np.diff(m.offset_start)[r]) for r in (1, 2, 3))
