@@ -282,21 +282,28 @@ def test_snapshot_round_trip(tmp_path, discretize):
     from voxtool.io.mapfile import load_map, save_map
 
     m = HashVoxelMap(MapParams(0.1), S, n_lim=500, d_inf=0.2, discretize=discretize)
-    for scan in world_scans(4, 150, seed=12):
+    for i, scan in enumerate(world_scans(4, 150, seed=12)):
+        if i == 3:
+            m.set_params(d_inf=0.3)  # voxels of radius 2 and 3: the snapshot's header says 3
         m.integrate(scan)
     save_map(tmp_path / "h.vxm", m, {})
     back, snap = load_map(tmp_path / "h.vxm")
+    assert back.sphere_radii == {2, 3}
     assert snap.header["backend_params"]["n_lim"] == 500
     assert back.discretize == discretize  # the rays it casts from here on are the same kind
     a, b = m.leaves(), back.leaves()
     assert np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)
     assert np.array_equal(back.occupied_codes(), m.occupied_codes())
-    # the reloaded map keeps updating like the original: the same voxels, the same log-odds
+    # the reloaded map keeps updating like the original: the same voxels, the same log-odds,
+    # the same inflation (with a smaller radius from here on: the loaded voxels keep theirs)
+    for x in (m, back):
+        x.set_params(d_inf=0.1)
     for scan in world_scans(2, 150, seed=13):
         back.integrate(scan)
         m.integrate(scan)
     a, b = m.leaves(), back.leaves()
     assert np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)
+    assert back.inflation_counts() == m.inflation_counts() and back.sphere_radii == {1, 2, 3}
 
 
 @pytest.mark.parametrize("max_range, set_size, discretize", [(-1.0, None, 1), (2.5, None, 1), (-1.0, 64, 1),
