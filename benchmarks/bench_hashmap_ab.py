@@ -58,8 +58,8 @@ for line in sys.stdin:
         print(json.dumps({"digest": h.hexdigest(), "memory_bytes": m.memory_bytes()}), flush=True)
     else:
         m.integrate(scans[int(line)])
-        print(json.dumps({k: m.scan_metrics[-1][k] for k in ("t_tot_ms", "t_occ_ms", "t_inf_ms", "t_m_ms")}), flush=True)
-"""
+        print(json.dumps({k: m.scan_metrics[-1][k] for k in PARTS}), flush=True)
+""".replace("PARTS", repr(PARTS))
 
 
 class Side:
