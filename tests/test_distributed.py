@@ -318,7 +318,11 @@ def test_scheduler_address_runs_on_a_cluster_started_by_dask_commands(tmp_path, 
         # the workers first: without their scheduler they retry to reach it for seconds
         for p in reversed(procs):
             p.terminate()
-            p.wait(30)
+            try:
+                p.wait(30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
     # addresses that are not addresses, and nobody listening (Dask retries until
     # VOXTOOL_CONNECT_TIMEOUT, 10 s by default), last: the Client that failed to connect closes
     # itself later, from the garbage collector, and must not meet another command's Client
