@@ -405,13 +405,15 @@ def test_spheres_are_built_for_the_radii_in_use_and_counted_alike():
     from voxtool.maps.hashmap import sphere_offsets, sphere_sizes
 
     offsets, start = sphere_offsets({0, 2, 24})
+    sizes = sphere_sizes(24)
     g = np.arange(-24, 25)
     cube = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+    d2 = (cube * cube).sum(axis=1)
     for r in range(25):
         got = offsets[start[r]:start[r + 1]]
-        want = cube[(cube * cube).sum(axis=1) <= r * r] if r in (0, 2, 24) else np.zeros((0, 3))
+        want = cube[d2 <= r * r] if r in (0, 2, 24) else np.zeros((0, 3))
         assert np.array_equal(got, want), r
-        assert (cube * cube).sum(axis=1).__le__(r * r).sum() == sphere_sizes(24)[r]
+        assert (d2 <= r * r).sum() == sizes[r]
     assert offsets.dtype == np.int8 and start.shape == (26,)
 
 

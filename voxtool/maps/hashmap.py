@@ -13,7 +13,7 @@ import numba
 import numpy as np
 
 from voxtool.config import MapParams, SensorModel, logodds
-from voxtool.errors import ParameterError
+from voxtool.errors import FormatError, ParameterError
 from voxtool.kernels import hashmap as K
 from voxtool.kernels.ball import ball_offsets
 from voxtool.kernels.raycast import balanced_cuts
@@ -62,7 +62,7 @@ if hasattr(os, "register_at_fork"):
 def sphere_sizes(max_radius: int) -> np.ndarray:
     """How many integer offsets |o| <= r there are, for r = 0..max_radius (sphere_offsets'
     group sizes), counted column by column without listing them: a snapshot's inflation is
-    sized before its offsets are built (radius 64 alone lists 18 M offsets, 435 MB)."""
+    sized before its offsets are built (a file with every radius up to 64 would list 18 M)."""
     g = np.arange(-max_radius, max_radius + 1)
     xy2 = (g[:, None] ** 2 + g[None, :] ** 2).ravel()
     sizes = np.empty(max_radius + 1, np.int64)
@@ -214,8 +214,6 @@ class HashVoxelMap:
         if free_rows < bricks:
             grown = max(2 * rows, rows + bricks)
             if 0 <= max_bytes < grown * self.icounts[0].nbytes:
-                from voxtool.errors import FormatError
-
                 raise FormatError(f"hashmap snapshot: rebuilding its inflation would take more than "
                                   f"{max_bytes:,} bytes of inflation counts ({grown:,} bricks)")
             if grown > K.ROW_MASK + 1:
@@ -493,8 +491,6 @@ class HashVoxelMap:
                 "hm_misses": occ["misses"].copy(), "hm_history": position[self._history()]}
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
-        from voxtool.errors import FormatError
-
         codes, values = arrays["leaf_codes"], arrays["leaf_values"]
         n = codes.shape[0]
         extra = [arrays.get(k) for k in ("hm_radius", "hm_last", "hm_hits", "hm_misses", "hm_history")]
