@@ -18,7 +18,9 @@ slower voxtool. The second ray-casting thread spins only briefly between scans
 
 Where the time goes: each row's t_occ (ray casting + input update), t_inf (inflation) and t_m
 (history), and for row a the same parts over its slowest 5 % of scans, which set the p95. Then
-empty_prefix_bound(): the most that skipping the first, empty part of each ray could save.
+empty_prefix_bound(): the most that skipping the first, empty part of each ray could save, and
+cast_floor(): row a with a ray casting that cost only its DDA steps, the most a faster miss
+detection could save while the rest of the update runs on one thread.
 """
 
 from __future__ import annotations
@@ -172,6 +174,88 @@ def empty_prefix_bound(scans: list, rays: int = 400) -> dict:
     return out
 
 
+def cast_floor(scans: list) -> dict:
+    """What a scan of row a would take if its ray casting cost only the DDA's steps: before each
+    scan, the same distinct end voxels (discretized) are cast on the same threads and cuts by a
+    kernel that only steps (no brick look-ups, mask tests, sets, sort or merge; the same step
+    count, checked), then the map takes the scan as usual. `floor_scan` = the scan's update
+    (everything after the cast, on one thread) + that floor cast: no faster miss detection can
+    beat it without the update itself running on more threads. Medians and p95 in ms."""
+    import time
+
+    import numba
+    from numba import njit, prange
+
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.kernels.raycast import _coord_key, balanced_cuts, ray_setup
+    from voxtool.maps.hashmap import HashVoxelMap
+
+    @njit(cache=True, nogil=True)
+    def dda_steps(points, origin, resolution, max_range):
+        res_factor = 1.0 / resolution
+        okx, oky, okz = (_coord_key(origin[0], res_factor), _coord_key(origin[1], res_factor),
+                         _coord_key(origin[2], res_factor))
+        steps = 0
+        for i in range(points.shape[0]):
+            cut, ekx, eky, ekz, tx, ty, tz, ux, uy, uz, sx, sy, sz, length = ray_setup(
+                points, i, origin, okx, oky, okz, resolution, max_range)
+            if ekx == okx and eky == oky and ekz == okz:
+                continue
+            kx, ky, kz = okx, oky, okz
+            to_end = abs(ekx - okx) + abs(eky - oky) + abs(ekz - okz)
+            while True:  # kernels.hashmap.trace_present's loop, less what it does at each voxel
+                steps += 1
+                if tx < ty:
+                    if tx < tz:
+                        kx += sx
+                        tx += ux
+                    else:
+                        kz += sz
+                        tz += uz
+                elif ty < tz:
+                    ky += sy
+                    ty += uy
+                else:
+                    kz += sz
+                    tz += uz
+                to_end -= 1
+                if to_end == 0 and kx == ekx and ky == eky and kz == ekz:
+                    break
+                if min(tx, min(ty, tz)) > length:
+                    break
+        return steps
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def dda_parts(points, cuts, origin, resolution, max_range, steps):
+        for w in prange(cuts.shape[0] - 1):
+            steps[w] = dda_steps(points[cuts[w]:cuts[w + 1]], origin, resolution, max_range)
+
+    m = HashVoxelMap(MapParams(0.1), SensorModel(), n_lim=50_000, d_inf=0.2, inf_range=8.0)
+    m.warm_up()
+    steps = np.zeros(numba.config.NUMBA_NUM_THREADS, np.int64)
+    first = m._discretized(scans[0])
+    dda_parts(first.points, balanced_cuts(first.points, first.origin, 1), first.origin, 0.1, -1.0, steps)  # compile
+    cols = {"t_tot": [], "cast": [], "floor_cast": [], "update": []}
+    for scan in scans:
+        t0 = time.perf_counter()
+        rays = m._discretized(scan)
+        parts = m.cast_parts(rays.points.shape[0])
+        numba.set_num_threads(parts)
+        dda_parts(rays.points, balanced_cuts(rays.points, rays.origin, parts), rays.origin, m.params.resolution,
+                  m.params.max_range, steps)
+        floor = 1e3 * (time.perf_counter() - t0)
+        timing = m.integrate(scan)
+        if int(steps[:parts].sum()) != timing.ray_steps:
+            raise AssertionError("the floor kernel stepped differently from the map's ray casting")
+        t_tot = m.scan_metrics[-1]["t_tot_ms"]
+        for k, v in zip(cols, (t_tot, 1e3 * timing.raycast, floor, t_tot - 1e3 * timing.raycast)):
+            cols[k].append(v)
+    a = {k: np.array(v) for k, v in cols.items()}
+    a["floor_scan"] = a["update"] + a["floor_cast"]
+    return {k: {"median": round(float(np.median(v)), 3), "p95": round(float(np.percentile(v, 95)), 3)}
+            for k, v in a.items()}
+
+
 def relayed(src: Path, share: Path) -> dict:
     """A receiver's hash map from the shared frames only, against the sender's map."""
     from voxtool.codec.share import relay
@@ -297,6 +381,10 @@ def main() -> None:
     rows[0]["empty_prefix_bound"] = bound
     print("steps a ray takes before it first passes within r voxels of a map voxel (the most that skipping a ray's "
           "first steps could save): " + ", ".join(f"r {k[1:]}: {v:.1%}" for k, v in bound.items()))
+    floor = cast_floor(scans)
+    rows[0]["cast_floor"] = floor
+    print("row a with a ray casting that cost only its DDA steps (same rays, threads, steps), ms median / p95: "
+          + ", ".join(f"{k} {v['median']:.2f} / {v['p95']:.2f}" for k, v in floor.items()))
     with tempfile.TemporaryDirectory() as tmp:
         loaded = under_load(src, tmp)
     print(f"\nrow a as whole commands (median of 3 runs): {'load':<17} {'threads':<23} {'median ms':>9} {'p95 ms':>7}")

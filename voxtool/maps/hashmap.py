@@ -314,6 +314,12 @@ class HashVoxelMap:
                                  np.empty(leaving, np.float32))
         return self._update_bufs
 
+    def cast_parts(self, rays: int) -> int:
+        """Runs (one a thread) that a scan of `rays` distinct end voxels is cast in."""
+        if rays < SMALL_SCAN or not _Parallel.usable:  # one thread (a small scan: a launch costs more than it saves)
+            return 1
+        return min(self.threads, numba.config.NUMBA_NUM_THREADS, max(1, rays // RAYS_PER_PART))
+
     def _trace(self, scan: Scan) -> tuple[np.ndarray, int]:
         """The scan's Morton-sorted (code << 1 | hit) updates that can change this map: every
         endpoint voxel, and the passed-through voxels that may be in the occupancy map; each
@@ -326,9 +332,7 @@ class HashVoxelMap:
             return np.empty(0, np.int64), 0
         while True:
             size = self._set_size
-            parts = min(self.threads, numba.config.NUMBA_NUM_THREADS, max(1, n // RAYS_PER_PART))
-            if n < SMALL_SCAN or not _Parallel.usable:  # one thread (a small scan: a launch costs more than it saves)
-                parts = 1
+            parts = self.cast_parts(n)
             seen, slots, out, counts, merged, spare = self._cast_buffers(parts, size)
             if parts == 1:
                 k, steps = K.trace_present(scan.points, scan.origin, self.params.resolution, self.params.max_range,
