@@ -99,7 +99,7 @@ def compile_cmd(as_json, progress):
     NUMBA_CACHE_DIR), by running each command once on a sliver of the shipped sample.
 
     Without it, each command's first run after an install compiles the kernels it needs
-    (about 3 s for `build`, 2 s for `encode --codec cm`). This takes about a minute once (29-66
+    (about 3 s for `build`, 2 s for `encode --codec cm`). This takes about a minute once (29-67
     s from an empty cache on a 2-core machine; 2 s when the cache is full); run it again only
     after changing voxtool's sources (the cache then recompiles by itself). Where stderr is no
     terminal it prints one line per command instead of a bar.
