@@ -9,6 +9,14 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
+# No test may depend on wall-clock speed: Hypothesis' per-example deadline (200 ms by default) failed
+# a compiled-kernel property on a busy machine (a first call compiles or loads the kernel). Every
+# property test runs under this profile, whatever its own @settings say of the example count.
+from hypothesis import settings  # noqa: E402
+
+settings.register_profile("voxtool", deadline=None)
+settings.load_profile("voxtool")
+
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:

@@ -60,32 +60,70 @@ def test_the_storage_file_of_a_ros2_bag_reads_as_its_bag(tmp_path, scans, pcd_di
 
 
 @pytest.mark.parametrize("kind", ["ros1", "ros2-db3"])
-def test_laserscans_are_rays_in_the_scan_plane(tmp_path, kind):
-    """A LaserScan's readings become points at their angles in the scan plane; readings with no
-    return (out of range, inf, NaN) are dropped and counted: the map equals the map of a PCD
-    holding the valid points, computed here by hand."""
+def test_laserscans_are_rays_with_no_returns_clearing(tmp_path, kind):
+    """A LaserScan's readings become points at their angles in the scan plane. A reading at or
+    above range_max, or +Inf, is the scanner's "no return": its beam clears free space up to
+    range_max and marks no hit. Below range_min, NaN and -Inf are dropped and counted. Truth:
+    the real OctoMap (pyoctomap) inserting the valid points and, for each no-return beam, a point
+    beyond range_max with max_range = range_max."""
+    pyoctomap = pytest.importorskip("pyoctomap")
+    from test_octree import finest_values
+
+    from voxtool.geometry import Pose
+
     rng = np.random.default_rng(5)
-    angle_min, inc, n = -2.0, 0.01, 400
+    angle_min, inc, n, range_max, res = -2.0, 0.01, 400, 30.0, 0.2
     rows = [rng.uniform(0.5, 8.0, n) for _ in range(3)]
     for r in rows:
         r[::37] = np.inf
-        r[5::41] = 50.0  # beyond range_max 30
+        r[5::41] = 50.0  # beyond range_max: no return
+        r[11::47] = range_max  # at range_max: no return
         r[7::43] = np.nan
+        r[9::53] = 0.05  # below range_min
     poses = [((0.3 * i, 0.1, 0.5), yaw_quat(0.2 * i)) for i in range(3)]
     path = write_bag(bag_path(tmp_path, kind), [(None, o, q) for o, q in poses], kind,
                      messages=lambda T, k, i, ns: laser(T, k, rows[i], angle_min, inc, ns))
-    d = tmp_path / "pcd"
-    d.mkdir()
-    expected_dropped = 0
-    for i, ((o, q), r) in enumerate(zip(poses, rows)):
-        a = angle_min + inc * np.arange(n)
-        ok = np.isfinite(r) & (r >= 0.1) & (r <= 30.0)
-        expected_dropped += int((~ok).sum())
-        pts = np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok]), np.zeros(ok.sum())], axis=1)
-        write_pcd(d / f"{i}.pcd", pts.astype(np.float32), (*o, *q))
-    leaves, report = leaves_of(path)
-    assert leaves == leaves_of(d)[0]
+    tree = pyoctomap.OcTree(res)
+    expected_dropped = expected_misses = 0
+    a = angle_min + inc * np.arange(n)
+    for (o, q), r in zip(poses, rows):
+        hit = np.isfinite(r) & (r >= 0.1) & (r < range_max)
+        miss = (r >= range_max) & ~np.isnan(r)
+        expected_dropped += int((~hit & ~miss).sum())
+        expected_misses += int(miss.sum())
+        far = np.where(miss, 2 * range_max, r)
+        sensor = np.stack([far * np.cos(a), far * np.sin(a), np.zeros(n)], axis=1)[hit | miss]
+        world = Pose.from_quat(o, *q).apply(sensor.astype(np.float32)).astype(np.float64)
+        tree.insertPointCloud(world, np.asarray(o, dtype=np.float64), max_range=range_max)
+    m = make_backend_for_test()
+    report = build_for_test(path, m)
+    ours = finest_values(m)
+    leaves, inner = m.node_counts()
+    assert (leaves, leaves + inner) == (tree.getNumLeafNodes(), tree.size())
+    for leaf in tree.begin_leafs():  # every OctoMap leaf answers the same log-odds from ours
+        c = np.array(leaf.getCoordinate())
+        key = tuple(int(v) for v in np.floor(c / res).astype(np.int64) + 32768)
+        assert ours[key] == pytest.approx(tree.search(c).getLogOdds(), abs=0)
     assert report.points_dropped_nonfinite == expected_dropped > 0
+    assert report.no_returns == expected_misses > 0
+    # no phantom arc of walls at range_max, and the cleared beams reach past the hits
+    keys = np.array(list(ours.keys()))
+    occupied = keys[np.array([ours[tuple(k)] > 0 for k in keys])]
+    dist = np.linalg.norm((keys - 32768 + 0.5) * res - np.array([0.3, 0.1, 0.5]), axis=1)
+    assert np.linalg.norm((occupied - 32768 + 0.5) * res - np.array([0.3, 0.1, 0.5]), axis=1).max() < 9.0
+    assert dist.max() > 25.0
+
+
+def make_backend_for_test():
+    from voxtool.maps import make_backend
+
+    return make_backend("octree", MapParams(resolution=0.2), SensorModel())
+
+
+def build_for_test(path, m):
+    from voxtool.pipeline import build
+
+    return build(open_source(path, SourceOptions()), m, progress=False)
 
 
 @pytest.mark.parametrize("kind", BAG_KINDS)
@@ -99,7 +137,7 @@ def test_bag_problems_are_one_line(tmp_path, scans, kind):
     nopose = write_bag(bag_path(tmp_path / "nopose", kind) if kind != "ros1" else tmp_path / "nopose.bag",
                        scans, kind, mode="odom")
     code, _, err = cli("build", nopose, "-o", out, "--no-progress")
-    assert code == 3 and err.count("\n") == 1 and "no /tf transform reaches the cloud frame 'lidar'" in err, err
+    assert code == 3 and err.count("\n") == 1 and "no transform reaches the scan frame 'lidar'" in err, err
     assert not out.exists()
 
 

@@ -221,7 +221,7 @@ def test_rosbag2_written_mcap_decodes(shared_data):
     src = McapCloudSource(shared_data / "mcap_format_fixtures" / "truck_icp_test_default_conf_0.mcap",
                           "cloud_2", "test", None)
     assert src.count == 1
-    index, points, pose, stamp, _ = next(src.scans())
+    index, points, pose, stamp, _, _ = next(src.scans())
     assert index == 0
     assert points.shape == (34894, 3) and pose.is_identity() and stamp == 0
 

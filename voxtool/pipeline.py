@@ -22,6 +22,7 @@ class BuildReport:
     points_dropped: int = 0
     points_dropped_nonfinite: int = 0
     points_dropped_min_range: int = 0
+    no_returns: int = 0  # beams that saw nothing (LaserScan range_max / +Inf): free space only
     raw_bytes: int = 0
     first_stamp_ns: int | None = None
     last_stamp_ns: int | None = None
@@ -38,6 +39,7 @@ class BuildReport:
     scan_stamps_ns: list[int] = field(default_factory=list)
     map_bytes: list[int] = field(default_factory=list)  # the map's used bytes after each scan
     skipped: list[dict] = field(default_factory=list)  # scans the source could not read (--bad-scans skip)
+    scans_unposed: int = 0  # scans before the first transform or after the last, left out as tf does
 
     def per_scan(self) -> dict:
         """The series `build --plot` draws (not in to_dict: a long run has many scans)."""
@@ -54,6 +56,8 @@ class BuildReport:
             "points_dropped": self.points_dropped,
             "points_dropped_nonfinite": self.points_dropped_nonfinite,
             "points_dropped_min_range": self.points_dropped_min_range,
+            "no_returns": self.no_returns,
+            "scans_unposed": self.scans_unposed,
             "raw_bytes": self.raw_bytes,
             "voxel_updates": self.voxel_updates,
             "ray_steps": self.ray_steps,
@@ -153,6 +157,7 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
             report.points_dropped += scan.points_dropped
             report.points_dropped_nonfinite += scan.dropped_nonfinite
             report.points_dropped_min_range += scan.dropped_min_range
+            report.no_returns += scan.no_returns
             report.raw_bytes += scan.raw_bytes
             if report.first_stamp_ns is None:
                 report.first_stamp_ns = scan.stamp_ns
@@ -167,4 +172,5 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
         bar.close()
     report.time_total = time.perf_counter() - t_start
     report.skipped = stream.bad.skipped
+    report.scans_unposed = stream.bad.unposed
     return report

@@ -7,6 +7,7 @@ import math
 import os
 import threading
 import time
+from dataclasses import replace
 from typing import Any
 
 import numba
@@ -19,7 +20,7 @@ from voxtool.kernels.ball import ball_offsets
 from voxtool.kernels.raycast import balanced_cuts
 from voxtool.keys import coords_to_keys
 from voxtool.maps.base import IntegrateTiming, Leaves, PreparedScan
-from voxtool.maps.octree import SMALL_SCAN, OctreeMap, merge_rays
+from voxtool.maps.octree import SMALL_SCAN, OctreeMap, merge_rays, miss_scan
 from voxtool.parallel import resolve_threads
 from voxtool.sources.scan import Scan
 
@@ -267,7 +268,7 @@ class HashVoxelMap:
         d_in = self._d_in_ahead
         if d_in >= 0 and scan.points.shape[0]:
             d = np.linalg.norm(scan.points.astype(np.float64) - scan.origin.astype(np.float64), axis=1)
-            scan = Scan(scan.points[d <= d_in], scan.origin, scan.index, scan.stamp_ns, scan.source)
+            scan = replace(scan, points=scan.points[d <= d_in])
         merged = 0
         if scan.points.shape[0]:
             coords_to_keys(scan.origin[None, :], self.params.resolution, what=f"{scan.source}: sensor origin of scan")
@@ -325,6 +326,18 @@ class HashVoxelMap:
         endpoint voxel, and the passed-through voxels that may be in the occupancy map; each
         voxel once, a hit winning over a miss (the one-update-per-voxel rule of OctoMap). With
         `discretize`, the rays go to the centres of the distinct end voxels."""
+        misses = miss_scan(scan, self.params)
+        if misses is not None:  # no-return beams: cut at their range, so they clear and hit nothing
+            packed, steps = self._trace_points(scan)
+            free, free_steps = self._trace_points(*misses)
+            both = np.sort(np.concatenate([packed, free]))
+            last = np.append((both[1:] >> 1) != (both[:-1] >> 1), True)  # per voxel its last: a hit wins
+            return both[last], steps + free_steps
+        return self._trace_points(scan)
+
+    def _trace_points(self, scan: Scan, params: MapParams | None = None) -> tuple[np.ndarray, int]:
+        """_trace of the scan's points alone, their rays cut at params.max_range (the map's by default)."""
+        params = params or self.params
         if self.discretize and scan.points.shape[0]:
             scan = self._discretized(scan)
         n = scan.points.shape[0]
@@ -335,7 +348,7 @@ class HashVoxelMap:
             parts = self.cast_parts(n)
             seen, slots, out, counts, merged, spare = self._cast_buffers(parts, size)
             if parts == 1:
-                k, steps = K.trace_present(scan.points, scan.origin, self.params.resolution, self.params.max_range,
+                k, steps = K.trace_present(scan.points, scan.origin, params.resolution, params.max_range,
                                            self.bkeys, self.bmask, seen[0], slots[0], out[0])
                 if k >= 0:
                     return out[0, :k].copy(), steps
@@ -344,7 +357,7 @@ class HashVoxelMap:
                 with PARALLEL_LAUNCH:
                     _Parallel.launched = True
                     numba.set_num_threads(parts)  # a thread a run
-                    k = K.trace_parts(scan.points, cuts, scan.origin, self.params.resolution, self.params.max_range,
+                    k = K.trace_parts(scan.points, cuts, scan.origin, params.resolution, params.max_range,
                                       self.bkeys, self.bmask, seen, slots, out, counts, merged, spare)
                 if k >= 0:
                     return merged[:k].copy(), int(counts[:, 1].sum())

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -74,7 +74,7 @@ def merge_rays(scan: Scan, params: MapParams) -> Scan:
     first = np.ones(n, dtype=bool)
     first[1:] = (ends[order][1:] != ends[order][:-1]) | (sigs[order][1:] != sigs[order][:-1])
     keep = np.sort(order[first])
-    return Scan(scan.points[keep], scan.origin, scan.index, scan.stamp_ns, scan.source)
+    return replace(scan, points=scan.points[keep])
 
 
 def ray_parts(scan: Scan, threads: int) -> list[tuple[int, int]]:
@@ -130,6 +130,17 @@ class ScanBricks:
         return out, starts
 
 
+def miss_scan(scan: Scan, params: MapParams) -> tuple[Scan, MapParams] | None:
+    """A scan's no-return beams (Scan.misses) as a scan of their own, with the parameters that
+    cut each ray at the beam's range (or the map's max range when nearer) and mark no hit, as
+    OctoMap's insertPointCloud does with a point beyond maxrange; None when it has none."""
+    if scan.misses is None or scan.misses.shape[0] == 0 or scan.miss_range <= 0:
+        return None
+    cut = scan.miss_range if params.max_range < 0 else min(scan.miss_range, params.max_range)
+    coords_to_keys(scan.misses, params.resolution, what=f"{scan.source}: no-return beam end")
+    return Scan(scan.misses, scan.origin, scan.index, scan.stamp_ns, scan.source), replace(params, max_range=cut)
+
+
 def trace_scan(scan: Scan, params: MapParams, threads: int = 1, near_hits=None) -> list:
     """A scan's rays traced on `threads` threads, in runs of equal work: per run, (brick codes
     sorted, touched masks, endpoint masks, DDA steps) (_trace_part; near_hits: clean's stops).
@@ -141,15 +152,18 @@ def cast_scan(scan: Scan, params: MapParams, threads: int = 1, group_of=None) ->
     """(the voxels one scan updates as merged bricks, None for no points; its DDA step count;
     rays merged into others, 0 unless params.merge_rays). group_of: ScanBricks.merge."""
     n = scan.points.shape[0]
-    if n == 0:
+    misses = miss_scan(scan, params)
+    if n == 0 and misses is None:
         return None, 0, 0
     coords_to_keys(scan.origin[None, :], params.resolution, what=f"{scan.source}: sensor origin of scan")
     coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
     merged = 0
-    if params.merge_rays:
+    if params.merge_rays and n:
         scan = merge_rays(scan, params)
         merged = n - scan.points.shape[0]
-    parts = trace_scan(scan, params, threads)
+    parts = trace_scan(scan, params, threads) if n else []
+    if misses is not None:  # no-return beams: cut at their range, so they clear and hit nothing
+        parts += trace_scan(*misses, threads)
     if len(parts) == 1:
         bricks, touched, occ, steps = parts[0]
     else:

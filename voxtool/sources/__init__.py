@@ -50,6 +50,11 @@ class BadScans:
     def __init__(self, policy: str) -> None:
         self.policy = policy
         self.skipped: list[dict] = []
+        self.unposed = 0  # scans left out for want of a transform at their time (before the first, after the last)
+        self.lost = ""  # how much of the file could not be read (a truncated log read with skip), in words
+
+    def unposed_scans(self, before: list[int], after: list[int]) -> None:
+        self.unposed += len(before) + len(after)
 
     def __call__(self, index: int, err: SourceError) -> None:
         if self.policy == "fail":
@@ -91,9 +96,10 @@ def _numeric_key(path: Path) -> tuple:
 
 
 def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source: str, raw_bytes: int,
-              options: SourceOptions, world_frame_points: bool = False) -> Scan:
+              options: SourceOptions, world_frame_points: bool = False, misses: tuple | None = None) -> Scan:
     """Drop non-finite points, move sensor-frame points to the world (about the local origin,
-    if any), drop those below min range."""
+    if any), drop those below min range. misses: (sensor-frame no-return beams, their range),
+    whose NaN places in `points` are not counted as dropped (ros_msgs.decode_laserscan)."""
     finite = np.isfinite(points).all(axis=1)
     kept = points[finite]
     if options.origin is not None:
@@ -105,12 +111,16 @@ def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source:
             kept = np.asarray(kept, dtype=np.float64) - shift
     world = np.asarray(kept, dtype=np.float32) if world_frame_points else pose.apply(kept)
     origin = pose.translation.astype(np.float32)
-    dropped_min = 0
+    miss_points, miss_range = (None, -1.0) if misses is None else misses
+    if miss_points is not None:
+        miss_points = pose.apply(miss_points)
     if options.min_range > 0 and world.shape[0]:
         d = np.linalg.norm(world.astype(np.float64) - origin.astype(np.float64), axis=1)
         near = d < options.min_range
         dropped_min = int(near.sum())
         world = world[~near]
+    else:
+        dropped_min = 0
     return Scan(
         points=np.ascontiguousarray(world, dtype=np.float32),
         origin=origin,
@@ -118,9 +128,11 @@ def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source:
         stamp_ns=stamp_ns,
         source=source,
         points_read=int(points.shape[0]),
-        dropped_nonfinite=int((~finite).sum()),
+        dropped_nonfinite=int((~finite).sum()) - (0 if miss_points is None else int(miss_points.shape[0])),
         dropped_min_range=dropped_min,
         raw_bytes=raw_bytes,
+        misses=None if miss_points is None else np.ascontiguousarray(miss_points, dtype=np.float32),
+        miss_range=float(miss_range),
     )
 
 
@@ -226,7 +238,8 @@ def _open_mcap(path: Path, options: SourceOptions) -> ScanStream:
 def _open_bag(path: Path, options: SourceOptions) -> ScanStream:
     from voxtool.sources.rosbag import BagCloudSource
 
-    src = BagCloudSource(path, options.topic, options.world_frame, options.pose_topic)
+    src = BagCloudSource(path, options.topic, options.world_frame, options.pose_topic,
+                         recover=options.bad_scans == "skip")
     return _log_stream("rosbag1" if src.path.suffix.lower() == ".bag" else "rosbag2", path, src, options)
 
 
@@ -235,8 +248,20 @@ def _log_stream(kind: str, path: Path, src, options: SourceOptions) -> ScanStrea
     bad = BadScans(options.bad_scans)
 
     def scans() -> Iterator[Scan]:
-        for i, points, pose, stamp, nbytes in src.scans(options.start, options.stop, options.every, bad):
-            yield make_scan(points, pose, i, stamp, f"{path}#{i}", nbytes, options)
+        read = 0
+        for i, points, pose, stamp, nbytes, misses in src.scans(options.start, options.stop, options.every, bad):
+            read += 1
+            yield make_scan(points, pose, i, stamp, f"{path}#{i}", nbytes, options, misses=misses)
+        lost = src.lost() if hasattr(src, "lost") else ""
+        if lost and not read:
+            raise SourceError(f"{path}: no scan can be read: {lost}")
+        if lost:  # a truncated log read as far as it goes (--bad-scans skip)
+            import warnings
+
+            from voxtool.errors import VoxtoolWarning
+
+            bad.lost = lost
+            warnings.warn(f"{path}: {lost}; the map holds the scans that could be read", VoxtoolWarning, stacklevel=2)
 
     count = _selected(path, src.count, options) if src.count is not None else None
     return ScanStream(kind, path, count, scans(), bad)

@@ -11,9 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from voxtool.errors import FormatError, SourceError, mcap_problem
-from voxtool.geometry import Pose
 from voxtool.sources.ros_msgs import scan_messages, scan_topic
-from voxtool.sources.tf import POSE_TYPES, TF, SensorPoses
+from voxtool.sources.tf import POSE_TYPES, SensorPoses, tf_topics
 
 
 def _decode_errors() -> tuple:
@@ -62,7 +61,8 @@ class McapCloudSource:
         self.count = counts.get(topic)
         if pose_topic is not None and topics.get(pose_topic) not in POSE_TYPES:
             raise SourceError(f"{self.path}: pose topic '{pose_topic}' is not Odometry or PoseStamped")
-        self._tf_topics = [t for t, s in topics.items() if s == TF]
+        self._tf_topics = tf_topics(topics)
+        self._topics = topics
         self._msgtype = topics[topic]
         self._poses: SensorPoses | None = None
 
@@ -79,12 +79,12 @@ class McapCloudSource:
         self._poses = _POSES[key]
 
     def _read_poses(self) -> SensorPoses:
-        poses = SensorPoses(str(self.path), self.world_frame, self.pose_topic)
+        poses = SensorPoses(str(self.path), self.world_frame, self.pose_topic, self._topics)
         try:
             if self.pose_topic is not None:
                 for _, _, _, msg in self._reader.iter_decoded_messages(topics=[self.pose_topic], log_time_order=True):
                     poses.add_pose(msg)
-            else:
+            elif self._tf_topics:  # (no topics would mean every topic to the mcap reader)
                 for _, channel, _, msg in self._reader.iter_decoded_messages(topics=self._tf_topics, log_time_order=True):
                     poses.add_transforms(msg, channel.topic == "/tf_static")
         except _decode_errors() as err:
@@ -117,8 +117,8 @@ class McapCloudSource:
         return np.sort(np.asarray(times, dtype=np.int64), kind="stable")
 
     def scans(self, start: int = 0, stop: int | None = None, every: int = 1,
-              on_bad: Callable[[int, SourceError], None] | None = None) -> Iterator[tuple[int, np.ndarray, Pose, int, int]]:
-        """(index, points, pose, stamp, bytes) of the cloud messages start, start + every, ...
+              on_bad: Callable[[int, SourceError], None] | None = None) -> Iterator[tuple]:
+        """(index, points, pose, stamp, bytes, (misses, miss range)) of the cloud messages start, start + every, ...
         before stop. Reading starts at the chunk holding message `start` (found by the file's
         message index), so a Dask task that reads scans 2000..2007 of a bag does not read the
         2000 before; without an index they are read but not decoded. A message that cannot be

@@ -49,10 +49,17 @@ def decode_pointcloud2(where: str, msg) -> np.ndarray:
     return out
 
 
-def decode_laserscan(where: str, msg) -> np.ndarray:
-    """(N, 3) float32 points of a LaserScan in its frame (z = 0): reading i lies at angle
-    angle_min + i * angle_increment. A reading outside [range_min, range_max] (no return) or not
-    finite becomes a NaN point, which the scan reader drops and counts."""
+NO_RETURN_BEYOND = 1.01  # a no-return beam's point lies this far past its range, where its ray is cut
+
+
+def decode_laserscan(where: str, msg) -> tuple[np.ndarray, np.ndarray | None, float]:
+    """(N, 3) float32 points of a LaserScan in its frame (z = 0), reading i at angle angle_min +
+    i * angle_increment; and its no-return beams. A reading at or above range_max (or +Inf, REP
+    117) is the scanner's "nothing there": it becomes a NaN point and a miss, a point past
+    range_max along its beam whose ray clears free space up to range_max and marks no hit (as
+    gmapping's maxUrange and octomap_server's max_range treat it). A reading below range_min,
+    NaN or -Inf becomes a NaN point, which the scan reader drops and counts. Returns (points,
+    misses or None, range_max)."""
     ranges = np.asarray(msg.ranges, dtype=np.float64)
     if ranges.shape[0] > MAX_POINTS:
         raise SourceError(f"{where} declares {ranges.shape[0]} ranges (limit {MAX_POINTS})")
@@ -60,14 +67,26 @@ def decode_laserscan(where: str, msg) -> np.ndarray:
     if not np.isfinite(inc) or not np.isfinite(float(msg.angle_min)):
         raise SourceError(f"{where}: angle_min {msg.angle_min} / angle_increment {inc} is not finite")
     angles = float(msg.angle_min) + inc * np.arange(ranges.shape[0])
-    valid = np.isfinite(ranges) & (ranges >= float(msg.range_min)) & (ranges <= float(msg.range_max))
+    rmin, rmax = float(msg.range_min), float(msg.range_max)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(ranges) & (ranges >= rmin) & (ranges < rmax)
+        no_return = (ranges >= rmax) & (ranges > 0) & ~np.isnan(ranges) if np.isfinite(rmax) and rmax > 0 else None
     r = np.where(valid, ranges, np.nan)
-    return np.stack([r * np.cos(angles), r * np.sin(angles), np.zeros_like(r)], axis=1).astype(np.float32)
+    points = np.stack([r * np.cos(angles), r * np.sin(angles), np.zeros_like(r)], axis=1).astype(np.float32)
+    if no_return is None or not no_return.any():
+        return points, None, rmax
+    a = angles[no_return]
+    far = rmax * NO_RETURN_BEYOND
+    misses = np.stack([far * np.cos(a), far * np.sin(a), np.zeros_like(a)], axis=1).astype(np.float32)
+    return points, misses, rmax
 
 
-def decode_scan(where: str, msgtype: str, msg) -> np.ndarray:
-    """The sensor-frame points of a PointCloud2 or LaserScan message."""
-    return decode_laserscan(where, msg) if msgtype == LASER else decode_pointcloud2(where, msg)
+def decode_scan(where: str, msgtype: str, msg) -> tuple[np.ndarray, np.ndarray | None, float]:
+    """The sensor-frame points of a PointCloud2 or LaserScan message, its no-return beams (a
+    LaserScan's, decode_laserscan) and the range at which they are cut."""
+    if msgtype == LASER:
+        return decode_laserscan(where, msg)
+    return decode_pointcloud2(where, msg), None, -1.0
 
 
 def scan_topic(where: str, topics: dict[str, str], topic: str | None) -> str:
@@ -88,37 +107,75 @@ def scan_topic(where: str, topics: dict[str, str], topic: str | None) -> str:
 def scan_messages(items: Iterator, decode: Callable, poses, where: str, topic: str, msgtype: str, errors: tuple,
                   problem: Callable[[Exception], str], start: int, stop: int | None, every: int,
                   on_bad: Callable | None, index: int = 0) -> Iterator[tuple]:
-    """(index, sensor points, pose, stamp, bytes) of a log's scan messages start, start + every,
+    """(index, sensor points, pose, stamp, bytes, (no-return beams, their range)) of a log's scan messages start, start + every,
     ... before stop, whatever reads the log (an MCAP file, a bag): `items` are its raw messages
     from message `index` on, `decode(item)` their (message, bytes), `poses` a tf.SensorPoses. A
     message that cannot be decoded or posed goes to `on_bad` (which raises, or records it and
-    lets reading go on); a log that cannot be read on from a message ends there."""
-    from voxtool.sources.tf import header_stamp
+    lets reading go on); a log that cannot be read on from a message ends there. Scans taken
+    before the first transform that poses them, or after the last, are left out as a tf
+    message filter leaves them out: counted (on_bad.unposed, where it has one) and warned about
+    on one line when reading ends."""
+    from voxtool.sources.tf import NoPoseSource, OutsideTransforms, header_stamp
 
     kind = msgtype.rsplit("/", 1)[-1]
-    while True:
-        try:
-            item = next(items, None)
-        except errors as err:
-            bad = SourceError(f"{where}: cannot read on from {kind} message {index} of '{topic}' ({problem(err)})")
-            if on_bad is None:
-                raise bad from err
-            on_bad(index, bad)
-            return
-        if item is None or (stop is not None and index >= stop):
-            return
-        if index >= start and (index - start) % every == 0:
+    unposed: dict[bool, list[int]] = {True: [], False: []}  # before the first transform / after the last
+    try:
+        while True:
             try:
-                msg, nbytes = decode(item)
-                points = decode_scan(f"{where}: {kind} message {index} of '{topic}'", msgtype, msg)
-                stamp = header_stamp(msg.header)
-                pose = poses.pose_at(msg.header.frame_id, stamp)
-            except (SourceError, *errors) as err:
-                bad = err if isinstance(err, SourceError) else SourceError(
-                    f"{where}: {kind} message {index} of '{topic}' cannot be decoded ({problem(err)})")
+                item = next(items, None)
+            except errors as err:
+                bad = SourceError(f"{where}: cannot read on from {kind} message {index} of '{topic}' ({problem(err)})")
                 if on_bad is None:
                     raise bad from err
                 on_bad(index, bad)
-            else:
-                yield index, points, pose, stamp, nbytes
-        index += 1
+                return
+            if item is None or (stop is not None and index >= stop):
+                return
+            if index >= start and (index - start) % every == 0:
+                try:
+                    msg, nbytes = decode(item)
+                    points, misses, miss_range = decode_scan(f"{where}: {kind} message {index} of '{topic}'",
+                                                             msgtype, msg)
+                    stamp = header_stamp(msg.header)
+                    pose = poses.pose_at(msg.header.frame_id, stamp)
+                except OutsideTransforms as err:
+                    unposed[err.before].append(index)
+                except NoPoseSource:
+                    raise  # no scan of the log can be posed: one line, whatever --bad-scans says
+                except (SourceError, *errors) as err:
+                    bad = err if isinstance(err, SourceError) else SourceError(
+                        f"{where}: {kind} message {index} of '{topic}' cannot be decoded ({problem(err)})")
+                    if on_bad is None:
+                        raise bad from err
+                    on_bad(index, bad)
+                else:
+                    yield index, points, pose, stamp, nbytes, (misses, miss_range)
+            index += 1
+    finally:
+        _report_unposed(where, topic, unposed, on_bad)
+
+
+def _report_unposed(where: str, topic: str, unposed: dict[bool, list[int]], on_bad) -> None:
+    """One warning line for the scans left out for want of a transform at their time."""
+    before, after = unposed[True], unposed[False]
+    if not before and not after:
+        return
+    import warnings
+
+    from voxtool.errors import VoxtoolWarning
+
+    record = getattr(on_bad, "unposed_scans", None)
+    if record is not None:
+        record(before, after)
+    parts = []
+    if before:
+        parts.append(f"{_indices(before)} taken before the first transform that poses {'it' if len(before) == 1 else 'them'}")
+    if after:
+        parts.append(f"{_indices(after)} taken after the last")
+    warnings.warn(f"{where}: left out {' and '.join(parts)} (topic '{topic}'), as a tf message filter drops them",
+                  VoxtoolWarning, stacklevel=3)
+
+
+def _indices(indices: list[int]) -> str:
+    shown = ", ".join(str(i) for i in indices[:4]) + (", ..." if len(indices) > 4 else "")
+    return f"scan {shown}" if len(indices) == 1 else f"{len(indices)} scans ({shown})"

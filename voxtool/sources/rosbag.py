@@ -7,12 +7,9 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-import numpy as np
-
 from voxtool.errors import SourceError
-from voxtool.geometry import Pose
 from voxtool.sources.ros_msgs import scan_messages, scan_topic
-from voxtool.sources.tf import POSE_TYPES, TF, SensorPoses
+from voxtool.sources.tf import POSE_TYPES, SensorPoses, tf_topics
 
 
 def bag_errors() -> tuple:
@@ -74,6 +71,15 @@ def _zstd(data: bytes, most: int) -> bytes:
         return reader.read(most)
 
 
+def bounded_chunk_decompressor(kind: str):
+    """The bounded decompressor of a ROS 1 chunk's compression (bz2, lz4)."""
+    if kind == "bz2":
+        return _bounded("bz2", _bz2)
+    if kind == "lz4":
+        return _bounded("lz4", _lz4)
+    raise ValueError(f"unknown chunk compression '{kind}'")
+
+
 _BOUNDED = False
 
 
@@ -119,69 +125,143 @@ def _problem(err: Exception) -> str:
     return f"{type(err).__name__}: {text}" if text != type(err).__name__ else text
 
 
-class BagCloudSource:
-    """Streams (index, sensor points, pose, stamp, raw bytes) of one scan topic of a bag."""
+class _IndexedBag:
+    """A bag rosbags opens through its index (ROS 1 .bag, ROS 2 bag directory)."""
 
-    def __init__(self, path: str | Path, topic: str | None, world_frame: str | None, pose_topic: str | None) -> None:
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
+    lost = staticmethod(lambda: "")
 
-        self.path = Path(path)
-        bound_bag_chunks()
-        root = bag_root(self.path)
-        store = get_typestore(Stores.ROS1_NOETIC if root.suffix.lower() == ".bag" else Stores.ROS2_HUMBLE)
-        try:
-            self._reader = AnyReader([root], default_typestore=store)
-            self._reader.open()
-        except FileNotFoundError as err:
-            raise SourceError(f"{self.path}: no such bag") from err
-        except (OSError, *bag_errors()) as err:
-            raise SourceError(f"{self.path}: cannot be read as a ROS bag ({_problem(err)})") from err
-        topics = {name: info.msgtype or "" for name, info in self._reader.topics.items()}
-        self.topic = scan_topic(str(self.path), topics, topic)
-        self._msgtype = topics[self.topic]
-        self.count: int | None = self._reader.topics[self.topic].msgcount
-        if pose_topic is not None and topics.get(pose_topic) not in POSE_TYPES:
-            raise SourceError(f"{self.path}: pose topic '{pose_topic}' is not Odometry or PoseStamped "
-                              f"(it is {topics.get(pose_topic) or 'not in the bag'})")
-        self._poses = SensorPoses(str(self.path), world_frame, pose_topic)
-        self._tf_topics = [t for t, s in topics.items() if s == TF]
-        self._poses_read = False
+    def __init__(self, reader) -> None:
+        self._reader = reader
+        self.topics = {name: info.msgtype or "" for name, info in reader.topics.items()}
+
+    def count(self, topic: str) -> int | None:
+        return self._reader.topics[topic].msgcount
+
+    def messages(self, topics: list[str]) -> Iterator:
+        connections = [c for c in self._reader.connections if c.topic in topics]
+        if not connections:  # rosbags reads every message for no connections: none is wanted here
+            return iter(())
+        return ((conn.topic, conn.msgtype, raw) for conn, _, raw in self._reader.messages(connections=connections))
+
+    def deserialize(self, raw, msgtype: str):
+        return self._reader.deserialize(raw, msgtype)
 
     def close(self) -> None:
         if self._reader.stack is not None:
             self._reader.close()
 
-    def _connections(self, topics: list[str]) -> list:
-        return [c for c in self._reader.connections if c.topic in topics]
+
+class _LinearBag:
+    """A ROS 1 bag read record by record, without its index (voxtool.sources.bag1_linear)."""
+
+    def __init__(self, bag) -> None:
+        self._bag = bag
+        self.topics = bag.topics
+        self.lost = bag.lost
+
+    def count(self, topic: str) -> int | None:
+        return sum(self._bag.counts.get(c.id, 0) for c in self._bag.connections.values() if c.topic == topic)
+
+    def messages(self, topics: list[str]) -> Iterator:
+        return ((conn.topic, conn.msgtype, raw) for conn, _, raw in self._bag.messages(topics))
+
+    def deserialize(self, raw, msgtype: str):
+        return self._bag.deserialize(raw, msgtype)
+
+    def close(self) -> None:
+        pass
+
+
+def _open_bag(path: Path, recover: bool):
+    """The bag at `path` opened through its index, or (recover) read record by record where the
+    index cannot be used: a recording that was killed, a file cut short, a damaged index."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    from voxtool.sources.bag1_linear import OLD_MAGIC, LinearBag
+
+    root = bag_root(path)
+    ros1 = root.suffix.lower() == ".bag"
+    if ros1 and root.is_file():
+        with open(root, "rb") as f:
+            if f.read(len(OLD_MAGIC)) == OLD_MAGIC:
+                return _LinearBag(LinearBag(root))  # raises the one line that says what to do
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    try:
+        reader = AnyReader([root], default_typestore=store)
+        reader.open()
+        return _IndexedBag(reader)
+    except FileNotFoundError as err:
+        raise SourceError(f"{path}: no such bag") from err
+    except (OSError, *bag_errors()) as err:
+        problem = _problem(err)
+    if not ros1:
+        raise SourceError(f"{path}: cannot be read as a ROS bag ({problem})")
+    if not recover:
+        raise SourceError(f"{path}: its index cannot be read ({problem}); --bad-scans skip builds from the scans "
+                          "that can be read (or rebuild the index with ROS 1's `rosbag reindex`)")
+    bag = LinearBag(root)
+    if not bag.connections:
+        raise SourceError(f"{path}: no scan can be read: not through its index ({problem}), nor record by record "
+                          f"({bag.lost()})")
+    return _LinearBag(bag)
+
+
+class BagCloudSource:
+    """Streams (index, sensor points, pose, stamp, raw bytes) of one scan topic of a bag."""
+
+    def __init__(self, path: str | Path, topic: str | None, world_frame: str | None, pose_topic: str | None,
+                 recover: bool = False) -> None:
+        self.path = Path(path)
+        bound_bag_chunks()
+        self._bag = _open_bag(self.path, recover)
+        topics = self._bag.topics
+        self.topic = scan_topic(str(self.path), topics, topic)
+        self._msgtype = topics[self.topic]
+        self.count: int | None = self._bag.count(self.topic)
+        if pose_topic is not None and topics.get(pose_topic) not in POSE_TYPES:
+            candidates = sorted(t for t, s in topics.items() if s in POSE_TYPES)
+            raise SourceError(f"{self.path}: pose topic '{pose_topic}' is not Odometry or PoseStamped "
+                              f"(it is {topics.get(pose_topic) or 'not in the bag'}; the bag's pose topics: "
+                              f"{', '.join(candidates) or 'none'})")
+        self._poses = SensorPoses(str(self.path), world_frame, pose_topic, topics)
+        self._tf_topics = tf_topics(topics)
+        self._poses_read = False
+
+    def lost(self) -> str:
+        """How much of the file could not be read (empty: all of it)."""
+        return self._bag.lost()
+
+    def close(self) -> None:
+        self._bag.close()
 
     def _read_poses(self) -> None:
         poses = self._poses
         topics = [poses.pose_topic] if poses.pose_topic is not None else self._tf_topics
         try:
-            for conn, _, raw in self._reader.messages(connections=self._connections(topics)):
-                msg = self._reader.deserialize(raw, conn.msgtype)
+            for topic, msgtype, raw in self._bag.messages(topics):
+                msg = self._bag.deserialize(raw, msgtype)
                 if poses.pose_topic is not None:
                     poses.add_pose(msg)
                 else:
-                    poses.add_transforms(msg, conn.topic == "/tf_static")
+                    poses.add_transforms(msg, topic == "/tf_static")
         except bag_errors() as err:
             raise SourceError(f"{self.path}: cannot read its poses ({_problem(err)})") from err
         poses.check()
         self._poses_read = True
 
     def scans(self, start: int = 0, stop: int | None = None, every: int = 1,
-              on_bad: Callable[[int, SourceError], None] | None = None) -> Iterator[tuple[int, np.ndarray, Pose, int, int]]:
-        """(index, points, pose, stamp, bytes) of scans start, start + every, ... before stop.
+              on_bad: Callable[[int, SourceError], None] | None = None) -> Iterator[tuple]:
+        """(index, points, pose, stamp, bytes, (misses, miss range)) of scans start, start + every, ... before stop.
         A scan that cannot be decoded or posed goes to `on_bad` (which raises, or records and
         lets the reading go on); a bag that cannot be read on from a message ends there."""
         if not self._poses_read:
             self._read_poses()
-        messages = self._reader.messages(connections=self._connections([self.topic]))
+        messages = self._bag.messages([self.topic])
 
         def decode(item) -> tuple:
-            conn, _, raw = item
-            return self._reader.deserialize(raw, conn.msgtype), len(raw)
+            _, msgtype, raw = item
+            return self._bag.deserialize(raw, msgtype), len(raw)
 
         yield from scan_messages(messages, decode, self._poses, str(self.path), self.topic, self._msgtype, bag_errors(),
                                  _problem, start, stop, every, on_bad)

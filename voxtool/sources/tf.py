@@ -13,7 +13,37 @@ from voxtool.geometry import Pose, interpolate_pose
 
 STAMP_TOLERANCE_NS = 1_000_000  # a cloud this close outside a transform's time range uses its end value
 TF = "tf2_msgs/msg/TFMessage"
+LEGACY_TF = "tf/msg/tfMessage"  # ROS 1 before tf2 (Willow Garage-era bags): the same fields on /tf
+TF_TYPES = (TF, LEGACY_TF)
 POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped")
+
+
+class OutsideTransforms(SourceError):
+    """A scan taken before the first transform that poses it (or after the last): a tf message
+    filter drops such scans, and so do the log readers (counted and warned about once)."""
+
+    def __init__(self, message: str, before: bool) -> None:
+        super().__init__(message)
+        self.before = before
+
+
+class NoPoseSource(SourceError):
+    """Nothing in the log poses the scans' frame: no scan can be built (not a bad scan)."""
+
+
+def tf_topics(topics: dict[str, str]) -> list[str]:
+    """The topics of a log (name -> message type) that carry transforms: /tf and /tf_static as
+    tf2 or legacy tf messages."""
+    return [t for t, s in topics.items() if s in TF_TYPES]
+
+
+def pose_hint(where: str, frame: str, topics: dict[str, str]) -> str:
+    """What would pose a log's scans when its /tf cannot: its Odometry / PoseStamped topics (for
+    --pose-topic), or a static sensor's own frame (--world-frame)."""
+    candidates = sorted(t for t, s in topics.items() if s in POSE_TYPES)
+    options = [f"--pose-topic {t}" for t in candidates[:3]]
+    options.append(f"--world-frame {frame} (a static sensor: the map in its own frame)")
+    return "pose them with " + ", or ".join(options)
 
 
 def header_stamp(header) -> int:
@@ -60,8 +90,10 @@ class SensorPoses:
     """Where a log's clouds were taken: fed the log's pose messages (add_transforms for /tf,
     add_pose for a --pose-topic), then asked for a cloud frame's pose at a stamp."""
 
-    def __init__(self, where: str, world_frame: str | None, pose_topic: str | None) -> None:
+    def __init__(self, where: str, world_frame: str | None, pose_topic: str | None,
+                 topics: dict[str, str] | None = None) -> None:
         self.where = where
+        self.topics = topics or {}  # the log's topics and types, for the hint of what would pose its scans
         self.world_frame = world_frame
         self.pose_topic = pose_topic
         self.edges: dict[tuple[str, str], StampedPoses] = {}
@@ -93,7 +125,9 @@ class SensorPoses:
         if self.sensor is not None:
             pose = self.sensor.at(stamp)
             if pose is None:
-                raise SourceError(f"{self.where}: pose topic '{self.pose_topic}' has no pose at {stamp} ns")
+                s = self.sensor.stamps
+                raise OutsideTransforms(f"{self.where}: pose topic '{self.pose_topic}' has no pose at {stamp} ns "
+                                        f"(its poses span {s[0]}..{s[-1]})", stamp < s[0])
             return pose
         return self._chain(frame.lstrip("/"), stamp)
 
@@ -112,10 +146,11 @@ class SensorPoses:
         """Pose of `frame` in the world frame at `stamp`, walking /tf edges either way."""
         if self.world_frame is None:
             root = self._root_of(frame)
-            if root == frame:
-                raise SourceError(
-                    f"{self.where}: no /tf transform reaches the cloud frame '{frame}' and no --pose-topic was given "
-                    f"(pass --world-frame {frame} to take the clouds as world-frame)")
+            if root == frame and not any(frame in edge for edge in self.edges):
+                known = sorted({f for edge in self.edges for f in edge})
+                tree = f"its /tf frames: {', '.join(known[:8])}" if known else "the log has no /tf transform"
+                raise NoPoseSource(f"{self.where}: no transform reaches the scan frame '{frame}' ({tree}); "
+                                  f"{pose_hint(self.where, frame, self.topics)}")
             self.world_frame = root
         if frame == self.world_frame:
             return Pose.identity()
@@ -132,7 +167,8 @@ class SensorPoses:
                         prev[b] = (a, (parent, child), forward)
                         queue.append(b)
         if frame not in prev:
-            raise SourceError(f"{self.where}: no transform chain from '{self.world_frame}' to '{frame}' in /tf")
+            raise NoPoseSource(f"{self.where}: no transform chain from '{self.world_frame}' to '{frame}' in /tf; "
+                              f"{pose_hint(self.where, frame, self.topics)}")
         pose = Pose.identity()
         node = frame
         while node != self.world_frame:
@@ -140,9 +176,9 @@ class SensorPoses:
             p = self.edges[edge].at(stamp)
             if p is None:
                 s = self.edges[edge].stamps
-                raise SourceError(
-                    f"{self.where}: transform {edge[0]} -> {edge[1]} has no value at {stamp} ns (known {s[0]}..{s[-1]})"
-                )
+                raise OutsideTransforms(
+                    f"{self.where}: transform {edge[0]} -> {edge[1]} has no value at {stamp} ns (known {s[0]}..{s[-1]})",
+                    stamp < s[0])
             if not forward:
                 r = p.rotation.T
                 p = Pose(r, -r @ p.translation)
