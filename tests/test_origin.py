@@ -149,3 +149,60 @@ def test_query_and_diff_use_the_scans_frame(far_scans, tmp_path):
     assert code == 2 and "same --origin" in err, err
     code, _, err = cli("build", d, "-o", b, "--resolution", RES, "--origin", "1,2", "--no-progress")
     assert code == 2 and "--origin 1,2" in err
+
+
+def _write_world_pcd_f8(path, points: np.ndarray, sensor: np.ndarray) -> None:
+    """World-frame x y z as doubles (PCL's TYPE F SIZE 8), the sensor position as VIEWPOINT."""
+    n = len(points)
+    vp = " ".join(repr(float(v)) for v in (*sensor, 1, 0, 0, 0))
+    head = (f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 8 8 8\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\n"
+            f"VIEWPOINT {vp}\nPOINTS {n}\nDATA binary\n").encode()
+    path.write_bytes(head + np.asarray(points, dtype="<f8").tobytes())
+
+
+def _write_world_ply_f8(path, points: np.ndarray) -> None:
+    n = len(points)
+    head = (f"ply\nformat binary_little_endian 1.0\nelement vertex {n}\nproperty double x\nproperty double y\n"
+            "property double z\nend_header\n").encode()
+    path.write_bytes(head + np.asarray(points, dtype="<f8").tobytes())
+
+
+@pytest.mark.parametrize("kind", ["pcd", "ply"])
+def test_world_frame_doubles_keep_their_precision_until_the_origin_is_subtracted(far_scans, tmp_path, kind):
+    """World-frame clouds stored as doubles (UTM coordinates, --no-viewpoint for PCD, identity
+    poses for PLY): the map equals OctoMap's map of the scans shifted in float64 by the origin.
+    Read as float32 first, y (5.4e6 m) would snap to 0.5 m and the map would be another."""
+    pyoctomap = pytest.importorskip("pyoctomap")
+    _, scans = far_scans
+    d = tmp_path / kind
+    d.mkdir()
+    worlds = []
+    for i, (pts, pose) in enumerate(scans):
+        world = pts.astype(np.float64) @ pose.rotation.T + pose.translation  # float64 all the way
+        worlds.append((world, pose.translation))
+        if kind == "pcd":
+            _write_world_pcd_f8(d / f"{i}.pcd", world, pose.translation)
+        else:
+            _write_world_ply_f8(d / f"{i}.ply", world)
+    options = ["--no-viewpoint"] + ([] if kind == "pcd" else ["--poses", tmp_path / "poses.txt"])
+    if kind == "ply":  # the sensor positions as a TUM file; --no-viewpoint: the points are world-frame
+        (tmp_path / "poses.txt").write_text("".join(f"{i} {float(t[0])!r} {float(t[1])!r} {float(t[2])!r} 0 0 0 1\n"
+                                                    for i, (_, t) in enumerate(worlds)))
+    out = tmp_path / "m.vxm"
+    code, text, err = cli("build", d, "-o", out, "--resolution", RES, "--origin", "auto", "--json", "--no-progress",
+                          *options)
+    assert code == 0, err
+    origin = np.array(json.loads(text)["origin"])
+    tree = pyoctomap.OcTree(RES)
+    for world, sensor in worlds:
+        tree.insertPointCloud((world - origin).astype(np.float32).astype(np.float64),
+                              (sensor - origin).astype(np.float32).astype(np.float64))
+    tree.writeBinary(str(tmp_path / "octomap.bt"))
+    ours, _, thr, _ = load_leaves(out)
+    theirs, _, bt_thr, _ = load_leaves(tmp_path / "octomap.bt")
+    occ, free = voxel_set(ours, thr)
+    t_occ, t_free = voxel_set(theirs, bt_thr)
+    assert occ.size > 1000 and np.array_equal(occ, t_occ) and np.array_equal(free, t_free)
+    # the float32 reading this replaces moves y by up to a quarter metre: another map
+    y32 = worlds[0][0][:, 1].astype(np.float32).astype(np.float64)
+    assert np.abs(y32 - worlds[0][0][:, 1]).max() > 0.05

@@ -20,7 +20,7 @@ _TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 
 
 @dataclass
 class PcdCloud:
-    xyz: np.ndarray  # (N, 3) float32, may hold NaN
+    xyz: np.ndarray  # (N, 3) float32 (float64 where the file stores x, y, z as doubles), may hold NaN
     viewpoint: tuple[float, ...]  # tx ty tz qw qx qy qz
     has_viewpoint: bool
     data_kind: str
@@ -113,16 +113,19 @@ def parse_pcd(blob: bytes, path: str | Path = "pcd") -> PcdCloud:
     body = memoryview(blob)[data_start:]
     record = np.dtype([(f"f{i}", dt[0], (dt[1],)) for i, dt in enumerate(dtypes)])
     axis_idx = [names.index(a) for a in "xyz"]
+    # doubles stay doubles: world-frame clouds (UTM) lose centimetres in float32 before an
+    # --origin is subtracted; the points become float32 only after (sources.make_scan)
+    out = np.float64 if any(np.dtype(dtypes[i][0]).itemsize == 8 for i in axis_idx) else np.float32
     if kind == "binary":
         need = npts * record.itemsize
         if len(body) < need:
             raise SourceError(f"{path}: PCD binary body has {len(body)} bytes, header declares {need}")
         rec = np.frombuffer(body, dtype=record, count=npts)
-        xyz = np.stack([rec[f"f{i}"][:, 0] for i in axis_idx], axis=1).astype(np.float32)
+        xyz = np.stack([rec[f"f{i}"][:, 0] for i in axis_idx], axis=1).astype(out)
     elif kind == "binary_compressed":
-        xyz = _binary_compressed(path, body, npts, dtypes, axis_idx)
+        xyz = _binary_compressed(path, body, npts, dtypes, axis_idx).astype(out, copy=False)
     elif kind == "ascii":
-        xyz = _ascii(path, bytes(body), npts, dtypes, axis_idx)
+        xyz = _ascii(path, bytes(body), npts, dtypes, axis_idx).astype(out, copy=False)
     else:
         raise SourceError(f"{path}: PCD DATA '{kind}' is not ascii, binary or binary_compressed")
     return PcdCloud(xyz, viewpoint, has_vp, kind)
@@ -153,7 +156,7 @@ def _binary_compressed(path: Path, body: memoryview, npts: int, dtypes: list, ax
             columns.append((i, np.frombuffer(raw[offset : offset + nbytes].tobytes(), dtype=dt).reshape(npts, count)[:, 0]))
         offset += nbytes
     by_field = dict(columns)
-    return np.stack([by_field[i] for i in axis_idx], axis=1).astype(np.float32)
+    return np.stack([by_field[i] for i in axis_idx], axis=1).astype(np.float64)
 
 
 def _ascii(path: Path, text: bytes, npts: int, dtypes: list, axis_idx: list[int]) -> np.ndarray:
@@ -166,4 +169,4 @@ def _ascii(path: Path, text: bytes, npts: int, dtypes: list, axis_idx: list[int]
         raise SourceError(f"{path}: PCD ascii body has {values.shape[0]} values, header declares {npts} x {ncols}")
     table = values.reshape(npts, ncols)
     starts = np.cumsum([0] + [count for _, count in dtypes])
-    return np.stack([table[:, starts[i]] for i in axis_idx], axis=1).astype(np.float32)
+    return np.stack([table[:, starts[i]] for i in axis_idx], axis=1)

@@ -15,7 +15,7 @@ _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short":
 
 
 def read_ply(path: str | Path) -> np.ndarray:
-    """(N, 3) float32 vertex positions."""
+    """(N, 3) vertex positions: float32, or float64 where the file stores them as doubles."""
     path = Path(path)
     try:
         blob = path.read_bytes()
@@ -88,11 +88,13 @@ def parse_ply(blob: bytes, path: str | Path = "ply") -> np.ndarray:
         if len(lines) < count or table.shape[0] != count * len(props):
             raise SourceError(f"{path}: PLY ascii body is short: expected {count} vertices of {len(props)} values")
         table = table.reshape(count, len(props))
-        return np.stack([table[:, names.index(a)] for a in "xyz"], axis=1).astype(np.float32)
+        wide = any(dict(props)[a] == "f8" for a in "xyz")
+        return np.stack([table[:, names.index(a)] for a in "xyz"], axis=1).astype(np.float64 if wide else np.float32)
     order = "<" if fmt == "binary_little_endian" else ">"
     record = np.dtype([(p, order + dt) for p, dt in props])
     need = offset + count * record.itemsize
     if len(body) < need:
         raise SourceError(f"{path}: PLY body has {len(body)} bytes, header declares {need}")
     rec = np.frombuffer(body, dtype=record, count=count, offset=offset)
-    return np.stack([rec[a] for a in "xyz"], axis=1).astype(np.float32)
+    wide = any(dict(props)[a] == "f8" for a in "xyz")  # doubles stay doubles (see pcd.py)
+    return np.stack([rec[a] for a in "xyz"], axis=1).astype(np.float64 if wide else np.float32)
