@@ -28,6 +28,7 @@ from voxtool.cli.diff import diff  # noqa: E402
 from voxtool.cli.encode import encode  # noqa: E402
 from voxtool.cli.eval import eval_cmd  # noqa: E402
 from voxtool.cli.export import export  # noqa: E402
+from voxtool.cli.info import info  # noqa: E402
 from voxtool.cli.merge import merge  # noqa: E402
 from voxtool.cli.query import query  # noqa: E402
 from voxtool.cli.stats import stats  # noqa: E402
@@ -68,8 +69,8 @@ def main() -> None:
     """
 
 
-for _command in (build, clean, eval_cmd, cache_bench_cmd, encode, decode, merge, query, stats, diff, export, view,
-                 compile_cmd):
+for _command in (build, info, clean, eval_cmd, cache_bench_cmd, encode, decode, merge, query, stats, diff, export,
+                 view, compile_cmd):
     main.add_command(_command)
 
 

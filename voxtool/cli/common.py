@@ -173,7 +173,15 @@ def summary_rows(stats: dict) -> list[tuple[str, str]]:
         rows.append(("local origin", f"{stats['origin']} in the scans' frame (the bbox and a .bt are relative to it; "
                                      ".ply/.pcd/.mcap exports are in the scans' frame)"))
     if "scans" in stats:
-        rows += [("scans", f"{stats['scans']:,}"), ("points", f"{stats['points']:,} ({stats['points_dropped']:,} dropped)")]
+        why = [f"{stats.get(k, 0):,} {what}" for k, what in (("points_dropped_nonfinite", "not finite (NaN/Inf) or below a LaserScan's range_min"),
+                                                                ("points_dropped_min_range", "nearer than --min-range"))
+               if stats.get(k)]
+        dropped = f"{stats['points_dropped']:,} dropped" + (f": {', '.join(why)}" if why else "")
+        if stats.get("no_returns"):
+            dropped += f"; {stats['no_returns']:,} no-return beams cleared free space only"
+        rows += [("scans", f"{stats['scans']:,}"), ("points", f"{stats['points']:,} ({dropped})")]
+        if stats.get("scans_unposed"):
+            rows.append(("scans left out", f"{stats['scans_unposed']:,} before the first transform or after the last"))
     if "workers" in stats:
         rows.append(("dask", f"{stats['workers']} workers, {stats['partitions']} partitions, {stats['batches']} batches "
                              f"of scans: {stats['timings_s']['total']:.3f} s (ray casting summed over tasks "

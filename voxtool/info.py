@@ -1,0 +1,165 @@
+"""`voxtool info SOURCE`: what a source holds before anything is built from it (what `ros2 bag
+info`, `mcap info` and `pdal info` give): its scans, time span and points per scan; for ROS logs
+its topics, the /tf tree, and the pose source `build` would use, or why there is none."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from voxtool.errors import SourceError, VoxtoolError
+from voxtool.sources import SourceOptions, detect_kind, open_source
+
+
+def _spread(values: list[int]) -> dict | None:
+    if not values:
+        return None
+    a = np.asarray(values)
+    return {"min": int(a.min()), "median": float(np.median(a)), "max": int(a.max())}
+
+
+def _span(stamps: list[int]) -> dict | None:
+    stamps = [s for s in stamps if s]
+    if not stamps:
+        return None
+    return {"first_ns": min(stamps), "last_ns": max(stamps), "seconds": round((max(stamps) - min(stamps)) * 1e-9, 6)}
+
+
+def describe(source: str | Path, options: SourceOptions | None = None) -> dict:
+    """A dict of what the source holds (see the module's docstring)."""
+    path = Path(source)
+    options = options or SourceOptions()
+    if not path.exists():
+        raise SourceError(f"{path}: no such file or directory")
+    kind = detect_kind(path)
+    if kind in ("bag", "db3"):
+        return _describe_bag(path, options)
+    if kind == "mcap":
+        return _describe_mcap(path, options)
+    return _describe_stream(path, kind, options)
+
+
+def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
+    """Files of scans (PCD, PLY, graph): every scan read, as build would read it."""
+    stream = open_source(path, options)
+    points, stamps = [], []
+    for scan in stream.scans:
+        points.append(scan.points_read)
+        stamps.append(scan.stamp_ns)
+    out = {"source": str(path), "kind": stream.kind, "scans": len(points), "points_per_scan": _spread(points),
+           "time_span": _span(stamps), "pose_source": _file_pose_source(path, kind, options)}
+    if kind == "pcd":
+        first = next(iter(sorted(path.glob("*.pcd"))), None) if path.is_dir() else path
+        if first is not None:
+            out["fields"] = _pcd_fields(first)
+    return out
+
+
+def _pcd_fields(path: Path) -> list[str]:
+    with open(path, "rb") as f:
+        for line in f.read(4096).split(b"\n"):
+            if line.upper().startswith(b"FIELDS"):
+                return line.decode("ascii", "replace").split()[1:]
+    return []
+
+
+def _file_pose_source(path: Path, kind: str, options: SourceOptions) -> str:
+    if options.poses:
+        return f"pose file {options.poses}"
+    if kind == "pcd":
+        return "each PCD's VIEWPOINT (times from the poses.txt beside the scans, when there is one)"
+    if kind == "graph":
+        return "the graph's node poses"
+    return "none"
+
+
+def _scan_counts(msgtype: str, msg) -> int:
+    from voxtool.sources.ros_msgs import LASER
+
+    return len(msg.ranges) if msgtype == LASER else int(msg.width) * int(msg.height)
+
+
+def _pose_source(poses, frame: str | None, stamps: list[int]) -> dict:
+    """Whether `build` can pose the scans, and by what: tried at the middle scan's stamp."""
+    if frame is None or not stamps:
+        return {"posed": False, "why": "no scan"}
+    stamp = sorted(stamps)[len(stamps) // 2]
+    try:
+        poses.pose_at(frame, stamp)
+    except VoxtoolError as err:
+        text = str(err)
+        return {"posed": False, "why": text.split(": ", 1)[1] if ": " in text else text}
+    if poses.pose_topic is not None:
+        return {"posed": True, "by": f"pose topic {poses.pose_topic}"}
+    return {"posed": True, "by": f"/tf: scan frame '{frame.lstrip('/')}' in world frame '{poses.world_frame}'"}
+
+
+def _describe_bag(path: Path, options: SourceOptions) -> dict:
+    from voxtool.sources.rosbag import BagCloudSource, _open_bag, bag_errors, bound_bag_chunks
+    from voxtool.sources.ros_msgs import SCAN_TYPES
+    from voxtool.sources.tf import header_stamp
+
+    bound_bag_chunks()
+    bag = _open_bag(path, recover=options.bad_scans == "skip")
+    topics = [{"topic": t, "type": s, "messages": bag.count(t)} for t, s in sorted(bag.topics.items())]
+    out: dict = {"source": str(path), "kind": "rosbag1" if path.suffix.lower() == ".bag" else "rosbag2",
+                 "topics": topics}
+    scan_topics = [t for t, s in bag.topics.items() if s in SCAN_TYPES]
+    try:
+        src = BagCloudSource(path, options.topic, options.world_frame, options.pose_topic,
+                             recover=options.bad_scans == "skip")
+    except SourceError as err:
+        out.update(scans=None, scan_topic=None, why=str(err), scan_topics=sorted(scan_topics))
+        return out
+    try:
+        src._read_poses()
+        problem = None
+    except SourceError as err:
+        problem = str(err)
+    points, stamps, frame = [], [], None
+    try:
+        for _, msgtype, raw in src._bag.messages([src.topic]):
+            msg = src._bag.deserialize(raw, msgtype)
+            points.append(_scan_counts(msgtype, msg))
+            stamps.append(header_stamp(msg.header))
+            frame = frame or msg.header.frame_id
+    except bag_errors() as err:
+        out["read_error"] = f"{type(err).__name__}: {err}"
+    poses = src._poses
+    out.update(scan_topic=src.topic, scan_type=src._msgtype, scans=len(points), points_per_scan=_spread(points),
+               time_span=_span(stamps), scan_frame=frame,
+               tf=[{"parent": p, "child": c, "static": e.static, "transforms": len(e.stamps)}
+                   for (p, c), e in sorted(poses.edges.items())],
+               pose_source=({"posed": False, "why": problem} if problem else _pose_source(poses, frame, stamps)))
+    lost = src.lost()
+    if lost:
+        out["lost"] = lost
+    return out
+
+
+def _describe_mcap(path: Path, options: SourceOptions) -> dict:
+    from voxtool.sources.mcap_ros2 import McapCloudSource
+    from voxtool.sources.tf import header_stamp
+
+    src = McapCloudSource(path, options.topic, options.world_frame, options.pose_topic)
+    summary = src._reader.get_summary()
+    counts = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
+    topics = [{"topic": c.topic, "type": summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "",
+               "messages": counts.get(cid)} for cid, c in sorted(summary.channels.items(), key=lambda kv: kv[1].topic)]
+    try:
+        src._load_poses()
+        problem = None
+    except SourceError as err:
+        problem = str(err)
+    points, stamps, frame = [], [], None
+    for _, _, _, msg in src._reader.iter_decoded_messages(topics=[src.topic], log_time_order=True):
+        points.append(_scan_counts(src._msgtype, msg))
+        stamps.append(header_stamp(msg.header))
+        frame = frame or msg.header.frame_id
+    poses = src._poses
+    return {"source": str(path), "kind": "mcap", "topics": topics, "scan_topic": src.topic, "scan_type": src._msgtype,
+            "scans": len(points), "points_per_scan": _spread(points), "time_span": _span(stamps), "scan_frame": frame,
+            "tf": [] if poses is None else [{"parent": p, "child": c, "static": e.static, "transforms": len(e.stamps)}
+                                            for (p, c), e in sorted(poses.edges.items())],
+            "pose_source": {"posed": False, "why": problem} if problem else _pose_source(poses, frame, stamps)}
