@@ -96,8 +96,8 @@ def _pose_source(poses, frame: str | None, stamps: list[int]) -> dict:
 
 
 def _describe_bag(path: Path, options: SourceOptions) -> dict:
-    from voxtool.sources.rosbag import BagCloudSource, _open_bag, bag_errors, bound_bag_chunks
     from voxtool.sources.ros_msgs import SCAN_TYPES
+    from voxtool.sources.rosbag import BagCloudSource, _open_bag, bag_errors, bound_bag_chunks
     from voxtool.sources.tf import header_stamp
 
     bound_bag_chunks()
