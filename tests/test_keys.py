@@ -79,3 +79,11 @@ def test_sort_codes_sorts_a_scans_worth_in_place():
     a = codes[:5].copy()
     sort_codes(a[1:4], np.empty(3, np.int64))  # a view: the values beyond it stay
     assert a[0] == codes[0] and a[4] == codes[4] and a[1:4].tolist() == sorted(codes[1:4].tolist())
+
+
+def test_no_property_test_has_a_wall_clock_deadline():
+    """Hypothesis' default 200 ms deadline failed a compiled-kernel property on a busy machine:
+    the suite's profile (conftest) turns deadlines off for every property test."""
+    from hypothesis import settings
+
+    assert settings.default.deadline is None

@@ -264,3 +264,14 @@ def test_a_pre_2_0_bag_is_one_line(tmp_path):
     assert code == 3 and not out.exists()
     assert "older than format 2.0 (#ROSRECORD V1.2)" in _one_error_line(err)
 
+
+
+def test_the_summary_says_why_points_were_dropped_and_which_scans_were_left_out(tmp_path, scans):
+    """The text summary names each reason points were dropped, and the scans left out."""
+    holed = [(np.vstack([pts, np.full((3, 3), np.nan, np.float32)]), o, q) for pts, o, q in scans]
+    path = write_wild_bag(tmp_path / "b.bag", holed, tf_from=1)
+    code, text, err = cli("build", path, "-o", tmp_path / "m.vxm", "--no-progress")
+    assert code == 0, err
+    points = next(ln for ln in text.splitlines() if ln.startswith("points "))
+    assert f"({3 * (len(scans) - 1)} dropped: {3 * (len(scans) - 1)} not finite" in points, points
+    assert "scans left out      1 before the first transform or after the last" in text, text
