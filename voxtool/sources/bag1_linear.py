@@ -22,7 +22,7 @@ from voxtool.errors import SourceError
 
 MAGIC = b"#ROSBAG V2.0\n"
 OLD_MAGIC = b"#ROSRECORD"  # ROS bags before format 2.0 (ROS before 2010)
-OP_MESSAGE, OP_BAG_HEADER, OP_CHUNK, OP_CONNECTION = 0x02, 0x03, 0x05, 0x07
+OP_MESSAGE, OP_CHUNK, OP_CONNECTION = 0x02, 0x05, 0x07
 MOST_HEADER = 1 << 20  # bytes: a real record header is a few hundred (a connection's: its definition)
 MOST_RECORD = 1 << 31  # bytes: beyond what a real chunk or message holds: the length is garbage
 
@@ -137,7 +137,8 @@ class LinearBag:
         self.read_bytes = 0
         self.stop_reason = ""
         self.skipped_bytes = 0  # bytes passed over between records that could not be read
-        self.damage = ""
+        self.damaged = 0  # records that could not be read (reading went on from the next header)
+        self.damage = ""  # the last one's problem
         self._store = None
         for _ in self._walk(count=True):  # connections and counts; the messages are read again by messages()
             pass
@@ -147,7 +148,7 @@ class LinearBag:
         that cannot be read is skipped to the next record header found after the last good
         record's header (a record whose length field is wrong swallows the next one's start:
         2010 bags wrote index records so); the bytes passed over count as lost."""
-        self.read_bytes, self.stop_reason, self.skipped_bytes = len(MAGIC), "", 0
+        self.read_bytes, self.stop_reason, self.skipped_bytes, self.damaged = len(MAGIC), "", 0, 0
         with open(self.path, "rb") as f:
             if self.size <= len(MAGIC):
                 self.stop_reason = "it holds no records"
@@ -164,14 +165,17 @@ class LinearBag:
                 self.stop_reason = str(err)
                 return
             except (SourceError, *_errors()) as err:
+                # the next header after the last good one: it may lie inside the record that
+                # failed (a wrong length swallowed it); never the failing record itself again
                 found = _next_header(data, last_header, self.size)
-                if found is None or found <= pos:
+                if found == pos:
                     found = _next_header(data, pos + 1, self.size)
                 problem = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
                 if found is None:
                     self.stop_reason = problem
                     return
                 self.skipped_bytes += max(0, found - pos)
+                self.damaged += 1
                 self.damage = problem
                 pos = last_header = found
                 continue
@@ -239,8 +243,9 @@ class LinearBag:
     def lost(self) -> str:
         """How much of the file could not be read, in words (empty when all of it was)."""
         parts = []
-        if self.skipped_bytes:
-            parts.append(f"{self.skipped_bytes:,} bytes of damaged records were passed over ({self.damage})")
+        if self.damaged:
+            parts.append(f"{self.damaged} damaged records were passed over ({self.skipped_bytes:,} bytes lost; "
+                         f"{self.damage})")
         if self.stop_reason:
             gone = self.size - self.read_bytes
             parts.append(f"the last {gone:,} of {self.size:,} bytes could not be read ({self.stop_reason})")
