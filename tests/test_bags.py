@@ -16,12 +16,17 @@ from voxtool.errors import SourceError
 from voxtool.sources import SourceOptions, open_source
 
 
-def leaves_of(src, **opts):
+def octree_of(src, **opts):
+    """(the octree map of `src` at 0.2 m, the build report)."""
     from voxtool.maps import make_backend
     from voxtool.pipeline import build
 
     m = make_backend("octree", MapParams(resolution=0.2), SensorModel())
-    report = build(open_source(src, SourceOptions(**opts)), m, progress=False)
+    return m, build(open_source(src, SourceOptions(**opts)), m, progress=False)
+
+
+def leaves_of(src, **opts):
+    m, report = octree_of(src, **opts)
     lv = m.leaves()
     return (lv.codes.tolist(), lv.depths.tolist(), lv.values.tolist()), report
 
@@ -95,8 +100,7 @@ def test_laserscans_are_rays_with_no_returns_clearing(tmp_path, kind):
         sensor = np.stack([far * np.cos(a), far * np.sin(a), np.zeros(n)], axis=1)[hit | miss]
         world = Pose.from_quat(o, *q).apply(sensor.astype(np.float32)).astype(np.float64)
         tree.insertPointCloud(world, np.asarray(o, dtype=np.float64), max_range=range_max)
-    m = make_backend_for_test()
-    report = build_for_test(path, m)
+    m, report = octree_of(path)
     ours = finest_values(m)
     leaves, inner = m.node_counts()
     assert (leaves, leaves + inner) == (tree.getNumLeafNodes(), tree.size())
@@ -112,18 +116,6 @@ def test_laserscans_are_rays_with_no_returns_clearing(tmp_path, kind):
     dist = np.linalg.norm((keys - 32768 + 0.5) * res - np.array([0.3, 0.1, 0.5]), axis=1)
     assert np.linalg.norm((occupied - 32768 + 0.5) * res - np.array([0.3, 0.1, 0.5]), axis=1).max() < 9.0
     assert dist.max() > 25.0
-
-
-def make_backend_for_test():
-    from voxtool.maps import make_backend
-
-    return make_backend("octree", MapParams(resolution=0.2), SensorModel())
-
-
-def build_for_test(path, m):
-    from voxtool.pipeline import build
-
-    return build(open_source(path, SourceOptions()), m, progress=False)
 
 
 @pytest.mark.parametrize("kind", BAG_KINDS)

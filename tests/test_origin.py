@@ -39,6 +39,17 @@ def voxel_set(leaves, thr):
         expand_leaves(leaves.codes[~occ], leaves.depths[~occ]))
 
 
+def assert_same_voxels_as_octomap(out, tree, tmp_path) -> None:
+    """voxtool's map `out` and OctoMap's `tree` (written as .bt, read back by the same reader)
+    hold the same occupied and the same free voxels, over a thousand occupied."""
+    tree.writeBinary(str(tmp_path / "octomap.bt"))
+    ours, _, thr, _ = load_leaves(out)
+    theirs, _, bt_thr, _ = load_leaves(tmp_path / "octomap.bt")
+    occ, free = voxel_set(ours, thr)
+    t_occ, t_free = voxel_set(theirs, bt_thr)
+    assert occ.size > 1000 and np.array_equal(occ, t_occ) and np.array_equal(free, t_free)
+
+
 def test_far_scans_are_refused_with_the_option_named(far_scans, tmp_path):
     code, _, err = cli("build", far_scans[0], "-o", tmp_path / "m.vxm", "--resolution", RES, "--no-progress")
     assert code == 4 and err.count("\n") == 1 and "--origin auto" in err, err
@@ -63,12 +74,7 @@ def test_the_map_about_a_local_origin_is_octomaps_map_of_the_shifted_scans(far_s
         shifted = Pose(pose.rotation, pose.translation - origin)
         world = shifted.apply(pts).astype(np.float64)
         tree.insertPointCloud(world, shifted.translation.astype(np.float32).astype(np.float64))
-    tree.writeBinary(str(tmp_path / "octomap.bt"))
-    ours, _, thr, _ = load_leaves(out)
-    theirs, _, bt_thr, _ = load_leaves(tmp_path / "octomap.bt")
-    occ, free = voxel_set(ours, thr)
-    t_occ, t_free = voxel_set(theirs, bt_thr)
-    assert occ.size > 1000 and np.array_equal(occ, t_occ) and np.array_equal(free, t_free)
+    assert_same_voxels_as_octomap(out, tree, tmp_path)
     code, text, _ = cli("stats", out, "--json")
     assert json.loads(text)["origin"] == pytest.approx(origin.tolist())
     assert "local origin" in cli("stats", out)[1]
@@ -197,12 +203,7 @@ def test_world_frame_doubles_keep_their_precision_until_the_origin_is_subtracted
     for world, sensor in worlds:
         tree.insertPointCloud((world - origin).astype(np.float32).astype(np.float64),
                               (sensor - origin).astype(np.float32).astype(np.float64))
-    tree.writeBinary(str(tmp_path / "octomap.bt"))
-    ours, _, thr, _ = load_leaves(out)
-    theirs, _, bt_thr, _ = load_leaves(tmp_path / "octomap.bt")
-    occ, free = voxel_set(ours, thr)
-    t_occ, t_free = voxel_set(theirs, bt_thr)
-    assert occ.size > 1000 and np.array_equal(occ, t_occ) and np.array_equal(free, t_free)
+    assert_same_voxels_as_octomap(out, tree, tmp_path)
     # the float32 reading this replaces moves y by up to a quarter metre: another map
     y32 = worlds[0][0][:, 1].astype(np.float32).astype(np.float64)
     assert np.abs(y32 - worlds[0][0][:, 1]).max() > 0.05

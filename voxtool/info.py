@@ -95,52 +95,61 @@ def _pose_source(poses, frame: str | None, stamps: list[int]) -> dict:
     return {"posed": True, "by": f"/tf: scan frame '{frame.lstrip('/')}' in world frame '{poses.world_frame}'"}
 
 
-def _describe_bag(path: Path, options: SourceOptions) -> dict:
-    from voxtool.sources.ros_msgs import SCAN_TYPES
-    from voxtool.sources.rosbag import BagCloudSource, _open_bag, bag_errors, bound_bag_chunks
+def _log_figures(kind: str, path: Path, topics: list[dict], topic: str, msgtype: str, messages, poses,
+                 problem: str | None) -> dict:
+    """What a ROS log (bag or MCAP) holds: `messages` are its scan topic's decoded messages,
+    `poses` its tf.SensorPoses as read (`problem`: why they could not be)."""
     from voxtool.sources.tf import header_stamp
 
-    bound_bag_chunks()
-    bag = _open_bag(path, recover=options.bad_scans == "skip")
+    points, stamps, frame = [], [], None
+    for msg in messages:
+        points.append(_scan_counts(msgtype, msg))
+        stamps.append(header_stamp(msg.header))
+        frame = frame or msg.header.frame_id
+    edges = [] if poses is None else sorted(poses.edges.items())
+    return {"source": str(path), "kind": kind, "topics": topics, "scan_topic": topic, "scan_type": msgtype,
+            "scans": len(points), "points_per_scan": _spread(points), "time_span": _span(stamps), "scan_frame": frame,
+            "tf": [{"parent": p, "child": c, "static": e.static, "transforms": len(e.stamps)} for (p, c), e in edges],
+            "pose_source": {"posed": False, "why": problem} if problem else _pose_source(poses, frame, stamps)}
+
+
+def _describe_bag(path: Path, options: SourceOptions) -> dict:
+    from voxtool.sources.ros_msgs import SCAN_TYPES
+    from voxtool.sources.rosbag import BagCloudSource, bag_errors, open_bag
+
+    recover = options.bad_scans == "skip"
+    bag = open_bag(path, recover)
+    kind = "rosbag1" if path.suffix.lower() == ".bag" else "rosbag2"
     topics = [{"topic": t, "type": s, "messages": bag.count(t)} for t, s in sorted(bag.topics.items())]
-    out: dict = {"source": str(path), "kind": "rosbag1" if path.suffix.lower() == ".bag" else "rosbag2",
-                 "topics": topics}
-    scan_topics = [t for t, s in bag.topics.items() if s in SCAN_TYPES]
     try:
-        src = BagCloudSource(path, options.topic, options.world_frame, options.pose_topic,
-                             recover=options.bad_scans == "skip")
+        src = BagCloudSource(path, options.topic, options.world_frame, options.pose_topic, recover, bag=bag)
     except SourceError as err:
-        out.update(scans=None, scan_topic=None, why=str(err), scan_topics=sorted(scan_topics))
-        return out
+        return {"source": str(path), "kind": kind, "topics": topics, "scans": None, "scan_topic": None,
+                "why": str(err), "scan_topics": sorted(t for t, s in bag.topics.items() if s in SCAN_TYPES)}
     try:
         src._read_poses()
         problem = None
     except SourceError as err:
         problem = str(err)
-    points, stamps, frame = [], [], None
-    try:
-        for _, msgtype, raw in src._bag.messages([src.topic]):
-            msg = src._bag.deserialize(raw, msgtype)
-            points.append(_scan_counts(msgtype, msg))
-            stamps.append(header_stamp(msg.header))
-            frame = frame or msg.header.frame_id
-    except bag_errors() as err:
-        out["read_error"] = f"{type(err).__name__}: {err}"
-    poses = src._poses
-    out.update(scan_topic=src.topic, scan_type=src._msgtype, scans=len(points), points_per_scan=_spread(points),
-               time_span=_span(stamps), scan_frame=frame,
-               tf=[{"parent": p, "child": c, "static": e.static, "transforms": len(e.stamps)}
-                   for (p, c), e in sorted(poses.edges.items())],
-               pose_source=({"posed": False, "why": problem} if problem else _pose_source(poses, frame, stamps)))
-    lost = src.lost()
-    if lost:
-        out["lost"] = lost
+    read_error = []
+
+    def messages():
+        try:
+            for _, msgtype, raw in bag.messages([src.topic]):
+                yield bag.deserialize(raw, msgtype)
+        except bag_errors() as err:  # a bag that cannot be read on: what was read is described
+            read_error.append(f"{type(err).__name__}: {err}")
+
+    out = _log_figures(kind, path, topics, src.topic, src._msgtype, messages(), src._poses, problem)
+    if read_error:
+        out["read_error"] = read_error[0]
+    if src.lost():
+        out["lost"] = src.lost()
     return out
 
 
 def _describe_mcap(path: Path, options: SourceOptions) -> dict:
     from voxtool.sources.mcap_ros2 import McapCloudSource
-    from voxtool.sources.tf import header_stamp
 
     src = McapCloudSource(path, options.topic, options.world_frame, options.pose_topic)
     summary = src._reader.get_summary()
@@ -152,14 +161,5 @@ def _describe_mcap(path: Path, options: SourceOptions) -> dict:
         problem = None
     except SourceError as err:
         problem = str(err)
-    points, stamps, frame = [], [], None
-    for _, _, _, msg in src._reader.iter_decoded_messages(topics=[src.topic], log_time_order=True):
-        points.append(_scan_counts(src._msgtype, msg))
-        stamps.append(header_stamp(msg.header))
-        frame = frame or msg.header.frame_id
-    poses = src._poses
-    return {"source": str(path), "kind": "mcap", "topics": topics, "scan_topic": src.topic, "scan_type": src._msgtype,
-            "scans": len(points), "points_per_scan": _spread(points), "time_span": _span(stamps), "scan_frame": frame,
-            "tf": [] if poses is None else [{"parent": p, "child": c, "static": e.static, "transforms": len(e.stamps)}
-                                            for (p, c), e in sorted(poses.edges.items())],
-            "pose_source": {"posed": False, "why": problem} if problem else _pose_source(poses, frame, stamps)}
+    messages = (msg for *_, msg in src._reader.iter_decoded_messages(topics=[src.topic], log_time_order=True))
+    return _log_figures("mcap", path, topics, src.topic, src._msgtype, messages, src._poses, problem)

@@ -51,7 +51,6 @@ class BadScans:
         self.policy = policy
         self.skipped: list[dict] = []
         self.unposed = 0  # scans left out for want of a transform at their time (before the first, after the last)
-        self.lost = ""  # how much of the file could not be read (a truncated log read with skip), in words
 
     def unposed_scans(self, before: list[int], after: list[int]) -> None:
         self.unposed += len(before) + len(after)
@@ -260,7 +259,6 @@ def _log_stream(kind: str, path: Path, src, options: SourceOptions) -> ScanStrea
 
             from voxtool.errors import VoxtoolWarning
 
-            bad.lost = lost
             warnings.warn(f"{path}: {lost}; the map holds the scans that could be read", VoxtoolWarning, stacklevel=2)
 
     count = _selected(path, src.count, options) if src.count is not None else None

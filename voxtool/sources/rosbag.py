@@ -172,14 +172,17 @@ class _LinearBag:
         pass
 
 
-def _open_bag(path: Path, recover: bool):
+def open_bag(path: Path, recover: bool):
     """The bag at `path` opened through its index, or (recover) read record by record where the
-    index cannot be used: a recording that was killed, a file cut short, a damaged index."""
+    index cannot be used: a recording that was killed, a file cut short, a damaged index. Its
+    `topics` (name -> type), `count(topic)`, `messages(topics)` as (topic, type, raw) and
+    `deserialize(raw, type)` are the same either way."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
     from voxtool.sources.bag1_linear import OLD_MAGIC, LinearBag
 
+    bound_bag_chunks()
     root = bag_root(path)
     ros1 = root.suffix.lower() == ".bag"
     if ros1 and root.is_file():
@@ -211,10 +214,10 @@ class BagCloudSource:
     """Streams (index, sensor points, pose, stamp, raw bytes) of one scan topic of a bag."""
 
     def __init__(self, path: str | Path, topic: str | None, world_frame: str | None, pose_topic: str | None,
-                 recover: bool = False) -> None:
+                 recover: bool = False, bag=None) -> None:
+        """bag: the bag already opened by open_bag() (else it is opened here)."""
         self.path = Path(path)
-        bound_bag_chunks()
-        self._bag = _open_bag(self.path, recover)
+        self._bag = bag if bag is not None else open_bag(self.path, recover)
         topics = self._bag.topics
         self.topic = scan_topic(str(self.path), topics, topic)
         self._msgtype = topics[self.topic]
