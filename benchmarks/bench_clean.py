@@ -147,7 +147,7 @@ def real_movers(data: Path, tmp: Path, out: Path, params, repeat: int) -> list[d
                                                      lambda s=scene: run_dufomap(s, params))
         v, d = accuracy(vox, truth), accuracy(duf, truth)
         picture = out.parent / f"clean_real_{scene.name}.png"
-        write_plot(clean_figure(cleaned.points, vox, f"voxtool clean, {name} (0.1 m)", 80.0), picture)
+        write_plot(clean_figure(cleaned.points, vox, f"voxtool clean, {name} (0.1 m)", 80.0)[0], picture)
         rows.append({"input": name, "points": int(truth.size), "dynamic_points": int(truth.sum()),
                      "removed_share": {"voxtool": round(float(vox.mean()), 5), "dufomap": round(float(duf.mean()), 5)},
                      "voxtool": {**v, "seconds": vox_s}, "dufomap": {**d, "seconds": duf_s}, "picture": str(picture)})
@@ -207,7 +207,7 @@ def main() -> None:
         picture = out.parent / f"clean_{name}.png"
         from voxtool.plots import clean_figure, write_plot
 
-        write_plot(clean_figure(cleaned.points, vox, f"voxtool clean {name} (0.1 m)", extent), picture)
+        write_plot(clean_figure(cleaned.points, vox, f"voxtool clean {name} (0.1 m)", extent)[0], picture)
         both = int((vox & duf).sum())
         rows.append({"input": name, "points": int(vox.size), "voxtool": {"removed": int(vox.sum()), "seconds": vox_s},
                      "dufomap": {"removed": int(duf.sum()), "seconds": duf_s}, "removed_by_both": both,

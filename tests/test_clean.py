@@ -317,8 +317,8 @@ def test_clean_shows_what_it_removed(tmp_path):
     assert code == 0 and (tmp_path / "side.png").is_file(), err
     from voxtool.plots import clean_figure
 
-    fig = clean_figure(world, truth, "t", view="side")
-    assert (fig.axes[0].get_xlabel(), fig.axes[0].get_ylabel()) == ("y (m)", "z (m)")
+    fig, _ = clean_figure(world, truth, "t", view="side")
+    assert (fig.axes[1].get_xlabel(), fig.axes[0].get_ylabel()) == ("y (m)", "z (m)")
     code, _, err = cli("clean", tmp_path / "scans", "--dynamic", tmp_path / "removed.txt", "--no-progress")
     assert code == 2 and "--dynamic: the removed points are written as .pcd or .ply" in err
 
@@ -402,3 +402,34 @@ def test_movers_ray_traced_into_real_returns():
     oncoming, overtaking = boxes[0], boxes[1]
     assert oncoming.velocity[:2] == pytest.approx((0.0, -10.0)) and overtaking.velocity[:2] == pytest.approx((0.0, 11.0))
     assert oncoming.hi[1] - oncoming.lo[1] == pytest.approx(4.5)  # a car's length along the road
+
+
+def test_clean_pictures_have_a_colour_bar_a_roof_and_export_s_layout():
+    """The picture's colours have a scale; a room's top view is drawn below its ceiling (as export's
+    pictures are), and a wide side view puts before above after, each the page's width."""
+    from voxtool.plots import clean_figure
+
+    rng = np.random.default_rng(3)
+    floor = np.c_[rng.uniform(0, 8, (4000, 2)), np.zeros(4000)]
+    ceiling = np.c_[rng.uniform(0, 8, (6000, 2)), np.full(6000, 3.0)]
+    wall = np.c_[np.zeros(2000), rng.uniform(0, 8, 2000), rng.uniform(0, 3, 2000)]
+    table = np.c_[rng.uniform(3, 4, (500, 2)), np.full(500, 0.8)]
+    room = np.concatenate([floor, ceiling, wall, table])
+    moved = np.zeros(len(room), bool)
+    moved[-500:] = True  # the table was removed: red, below the ceiling
+    fig, roof = clean_figure(room, moved, "room")
+    assert roof is not None and 0.8 < roof <= 3.0
+    assert "below the roof" in fig._suptitle.get_text()
+    bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert len(bars) == 1 and bars[0].get_xlabel() == "height (m)"
+    before = fig.axes[0].images[0].get_array()
+    red = (before[..., 0] == 1) & (before[..., 1] == 0) & (before[..., 3] == 1)
+    assert red.sum() > 100  # the removed table shows: the ceiling above it is not drawn
+    _, no_roof = clean_figure(room, moved, "room", below_roof=False)
+    assert no_roof is None
+
+    street = np.c_[rng.uniform(-1, 1, 5000), rng.uniform(-100, 100, 5000), rng.uniform(0, 5, 5000)]
+    fig, _ = clean_figure(street, np.zeros(5000, bool), "street", view="side")
+    fig.draw_without_rendering()
+    top, bottom = fig.axes[0].get_position(), fig.axes[1].get_position()
+    assert top.y0 > bottom.y1 and top.width > 0.7  # stacked, each nearly the figure's width

@@ -110,8 +110,11 @@ def write_scans(d: Path, n=2):
 
 BAD_CASES = {
     "missing source": (lambda d: d / "nope", 3, "nope: no such file or directory"),
-    "truncated pcd": (lambda d: _truncate(d / "0.pcd", 100).parent, 3, "PCD binary body has"),
-    "pcd without DATA": (lambda d: _rewrite(d / "0.pcd", b"DATA binary\n", b"DATUM binary\n"), 3, "PCD header has no DATA line"),
+    "truncated pcd": (lambda d: _truncate(d / "0.pcd", 100).parent, 3,
+                      "PCD binary body has 1100 bytes, header declares 1200; --bad-scans skip leaves out the scans"),
+    "pcd without DATA": (lambda d: _rewrite(d / "0.pcd", b"DATA binary\n", b"DATUM binary\n"), 3, "DATA line"),
+    "pcd cut in its header": (lambda d: _keep(d / "0.pcd", 60), 3, "the file ends after 60 bytes inside its PCD header"),
+    "empty pcd": (lambda d: _keep(d / "0.pcd", 0), 3, "0.pcd: the file is empty (0 bytes)"),
     "pcd bad viewpoint": (lambda d: _rewrite(d / "0.pcd", b"VIEWPOINT ", b"VIEWPOINT 1 "), 3, "VIEWPOINT needs 7 finite numbers"),
     "point outside key range": (lambda d: _far_point(d), 4, "outside the octree key range"),
     "empty directory": (lambda d: _empty(d), 3, "directory must hold .pcd or .ply scans"),
@@ -150,6 +153,11 @@ def _ply(d: Path, cut: int = 0, header: bytes | None = None) -> Path:
 def _truncate(p: Path, n: int) -> Path:
     p.write_bytes(p.read_bytes()[:-n])
     return p
+
+
+def _keep(p: Path, n: int) -> Path:
+    p.write_bytes(p.read_bytes()[:n])
+    return p.parent
 
 
 def _rewrite(p: Path, old: bytes, new: bytes) -> Path:

@@ -63,19 +63,28 @@ def test_an_interrupted_compile_exits_130(tmp_path):
 
 
 def test_compile_prints_its_phases_where_stderr_is_no_terminal(monkeypatch):
-    """Piped stderr (an install log, CI) gets no bar: one line per command instead of a silent
-    half-minute on a fresh install; --no-progress keeps it quiet. (Two of the steps, in this
-    process: the whole list runs in the sweep above.)"""
+    """Piped stderr (an install log, CI) gets no bar: one line per group of commands instead of a
+    silent half-minute on a fresh install; --no-progress keeps it quiet. (Three of the steps, in
+    this process: the whole list, in two processes, runs in the sweep above.)"""
     from click.testing import CliRunner
 
     from voxtool.cli import compile as command
     from voxtool.cli import main
 
-    steps = command._steps
-    monkeypatch.setattr(command, "_steps", lambda d: steps(d)[:1] + steps(d)[6:8])  # build, then its stats, query
-    result = CliRunner().invoke(main, ["compile"])
+    monkeypatch.setattr(command, "_GROUPS", (("build", "stats"), ("query",)))
+    result = CliRunner().invoke(main, ["compile", "--jobs", "1"])
     assert result.exit_code == 0, result.output
     lines = [line for line in result.stderr.splitlines() if line.startswith("voxtool compile: ")]
-    assert [line.split(":")[1].strip() for line in lines] == ["1/3 build", "2/3 stats", "3/3 query"]
-    quiet = CliRunner().invoke(main, ["compile", "--no-progress"])
+    assert [line.split(":")[1].strip() for line in lines] == ["2/3 build, stats", "3/3 query"]
+    quiet = CliRunner().invoke(main, ["compile", "--jobs", "1", "--no-progress"])
     assert quiet.exit_code == 0 and "voxtool compile:" not in quiet.stderr
+
+
+def test_the_compile_groups_hold_every_step_once():
+    """The two processes' groups together run every step exactly once."""
+    from pathlib import Path
+
+    from voxtool.cli.compile import _GROUPS, _steps
+
+    names = [name for group in _GROUPS for name in group]
+    assert sorted(names) == sorted(name for name, _ in _steps(Path("/tmp")))

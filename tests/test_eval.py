@@ -78,6 +78,12 @@ def test_min_correct_gate_and_picture(scenes, tmp_path):
     from matplotlib.image import imread
 
     assert imread(png).shape[0] > 100  # the picture is written before the gate fails
+    code, text, err = cli("eval", d, "--resolution", RES, "--png", png, "--json", "--no-progress")
+    got = json.loads(text)
+    # the legend names the printed totals (points) beside the voxels it draws
+    unknown, wrong = got["png"]["legend"]
+    assert f"{got['total']['wrong']:,} points in {got['png']['voxels']['wrong']:,} voxels" in wrong
+    assert f"{got['total']['unknown']:,} points in" in unknown
     assert cli("eval", d, "--resolution", RES, "--min-correct", f"{pct - 0.5:.3f}", "--no-progress")[0] == 0
     for bad, words in ((("--holdout", "0,99"), "scan indices are 0..6"), (("--holdout-every", "1"), "at least 2"),
                        (("--start", "1"), "use --stop")):

@@ -117,6 +117,18 @@ def test_point_outputs_are_in_the_scans_frame_in_float64(far_scans, tmp_path):
     assert np.all(np.abs(centre - FAR).max(axis=1) < 10)
     grid = got["/projected_map"][2]
     assert abs(grid.info.origin.position.x - FAR[0]) < 10 and abs(grid.info.origin.position.y - FAR[1]) < 10
+    # the nav2 .yaml beside a .pgm: the same corner as the .mcap's grid, and a comment saying why
+    import yaml
+
+    assert cli("export", out, "-o", tmp_path / "m.pgm")[0] == 0
+    text = (tmp_path / "m.yaml").read_text()
+    doc = yaml.safe_load(text)
+    assert doc["origin"][:2] == pytest.approx([grid.info.origin.position.x, grid.info.origin.position.y], abs=1e-6)
+    assert "local origin" in text.splitlines()[0] and text.startswith("#")
+    # a picture's axes are the local frame: its caption says so, with the origin
+    code, text, err = cli("export", out, "-o", tmp_path / "m.png", "--json")
+    assert code == 0, err
+    assert f"local frame: add the origin ({origin[0]:.3f}, {origin[1]:.3f}" in json.loads(text)["caption"]
 
 
 def test_clean_about_a_local_origin_writes_the_scans_frame(far_scans, tmp_path):

@@ -191,4 +191,6 @@ def test_a_snapshot_is_drawn_a_chunk_of_leaves_at_a_time(sample_map, tmp_path):
         sample_map[0], piece=100_000)[3]()), res, False, label="map")
     assert a == b and (tmp_path / "whole.png").read_bytes() == (tmp_path / "chunks.png").read_bytes()
     code, text, _ = cli("export", sample_map[0], "-o", tmp_path / "cli.png", "--json")
-    assert code == 0 and {k: v for k, v in json.loads(text).items() if k != "written"} == a
+    got = json.loads(text)
+    assert code == 0 and got.pop("caption") == "map.vxm" and a.pop("caption") == "map"
+    assert {k: v for k, v in got.items() if k != "written"} == a

@@ -61,8 +61,11 @@ def test_map_mcap_scene_and_octomap_topics(sample_map, tmp_path):
 
     path, _ = sample_map
     out = tmp_path / "map.mcap"
-    code, _, err = cli("export", path, "-o", out)
+    code, text, err = cli("export", path, "-o", out)
     assert code == 0, err
+    # the summary is words and numbers, not Python's dicts and lists
+    assert not any(c in text for c in "{}[]'"), text
+    assert "/octomap_binary, /voxtool/map, /projected_map" in text
     occ, free, res, thr = snapshot_sets(path)
     with open(out, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()], validate_crcs=True)

@@ -195,6 +195,14 @@ def test_a_bag_nothing_poses_is_one_line_naming_what_would(tmp_path, scans, case
     assert code == 3 and says in _one_error_line(err), err
 
 
+def test_a_world_frame_the_bag_lacks_lists_its_frames(tmp_path, scans):
+    path = write_wild_bag(tmp_path / "b.bag", scans)
+    code, _, err, out = _build(tmp_path, path, "--world-frame", "map")
+    assert code == 3 and not out.exists()
+    assert "--world-frame map is not a frame of its /tf (its frames: lidar, odom)" in _one_error_line(err), err
+    assert _build(tmp_path, path, "--world-frame", "odom")[0] == 0
+
+
 def test_only_odom_builds_with_the_pose_topic_named(tmp_path, scans):
     path = write_wild_bag(tmp_path / "b.bag", scans, tf="none", odom=True)
     with_tf = write_wild_bag(tmp_path / "tf.bag", scans)
@@ -275,3 +283,21 @@ def test_the_summary_says_why_points_were_dropped_and_which_scans_were_left_out(
     points = next(ln for ln in text.splitlines() if ln.startswith("points "))
     assert f"({3 * (len(scans) - 1)} dropped: {3 * (len(scans) - 1)} not finite" in points, points
     assert "scans left out      1 before the first transform or after the last" in text, text
+
+
+def test_the_docs_way_to_write_a_ros1_bag_builds(tmp_path, monkeypatch):
+    """docs/sources.md's block writing a ROS 1 bag with rosbags (TFMessage registered by hand)
+    runs, and the bag it writes builds: the one scan, posed 1 m along x."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "sources.md").read_text()
+    block = re.search(r"### Writing a ROS 1 bag.*?```python\n(.*?)```", text, re.S).group(1)
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(block, "docs/sources.md", "exec"), namespace)
+    code, report, err, _ = _build(tmp_path, tmp_path / "scans.bag")
+    assert code == 0, err
+    assert report["scans"] == 1 and report["points"] == 1000
+    lo, hi = report["occupied_bbox"]["min"], report["occupied_bbox"]["max"]
+    assert lo[0] < -3.5 and hi[0] > 5.5  # the points, -5..5, moved 1 m along x

@@ -110,6 +110,14 @@ def origin_of(options: SourceOptions) -> list[float]:
     return [float(v) for v in options.origin] if options.origin is not None else [0.0, 0.0, 0.0]
 
 
+def local_frame_note(origin) -> str:
+    """A picture's caption words for a map built about a local origin (--origin): its axes are
+    not the scans' frame."""
+    if origin is None or not any(origin):
+        return ""
+    return f" · axes in the map's local frame: add the origin ({', '.join(f'{v:.3f}' for v in origin)}) for the scans' frame"
+
+
 @contextmanager
 def origin_hint(options: SourceOptions):
     """A point beyond the key range: its error says how to build about a local origin."""
@@ -414,7 +422,8 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
         if streamed is not None:  # an octree snapshot, drawn a chunk of leaves at a time
             from voxtool.io.picture import write_leaf_sets
 
-            res, thr, _, chunks = streamed
+            res, thr, header, chunks = streamed
+            extra["label"] += local_frame_note(header.get("info", {}).get("origin"))
             return write_leaf_sets(output, lambda: ((leaves, thr) for leaves in chunks()), res, include_free,
                                    progress=progress, **extra)
     with bar(2, f"export {output.suffix}", progress, "step") as steps:
@@ -422,6 +431,8 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
         origin = meta.get("info", {}).get("origin")
         if kind in TAKES_ORIGIN and origin is not None and any(origin):
             extra["origin"] = tuple(origin)
+        if kind == ".png":
+            extra["label"] += local_frame_note(origin)
         if kind == ".mcap":  # stamped with the map's last scan (0: a map that does not say)
             extra["stamp_ns"] = int(meta.get("info", {}).get("last_stamp_ns", 0) or 0)
         if crop is not None:

@@ -416,8 +416,10 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
     if png is not None:
         from voxtool.plots import clean_figure, write_plot
 
-        cleaned.figures["png"] = write_plot(clean_figure(cleaned.points, cleaned.dynamic,
-                                                         f"voxtool clean {Path(source).name}", None, view), png)
+        fig, roof = clean_figure(cleaned.points, cleaned.dynamic, f"voxtool clean {Path(source).name}", None, view)
+        cleaned.figures["png"] = write_plot(fig, png)
+        if roof is not None:
+            cleaned.figures["png"]["below_roof_m"] = round(roof, 6)
     figures = cleaned.figures
     figures["timings_s"]["write"] = round(time.perf_counter() - t0, 6)
     figures["source"] = str(source)

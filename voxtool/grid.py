@@ -114,9 +114,16 @@ def pgm_bytes(grid: Grid2D) -> bytes:
     return f"P5\n# voxtool occupancy grid, {grid.resolution:g} m\n{w} {h}\n255\n".encode() + image.tobytes()
 
 
-def map_yaml(grid: Grid2D, image_name: str) -> str:
-    """nav2 map_server's map YAML for the image: the corner of its bottom-left pixel as origin."""
+def map_yaml(grid: Grid2D, image_name: str, local_origin=None) -> str:
+    """nav2 map_server's map YAML for the image: the corner of its bottom-left pixel as origin,
+    in the scans' frame (a map built about a local origin is shifted back by it, and a comment
+    says so)."""
     x, y = grid.origin
-    return (f"image: {image_name}\nmode: trinary\nresolution: {grid.resolution!r}\n"
+    note = ""
+    if local_origin is not None and any(local_origin):
+        x, y = x + float(local_origin[0]), y + float(local_origin[1])
+        note = (f"# voxtool: the map was built about the local origin {list(map(float, local_origin))} "
+                "(--origin); this origin is in the scans' frame\n")
+    return (f"{note}image: {image_name}\nmode: trinary\nresolution: {grid.resolution!r}\n"
             f"origin: [{x!r}, {y!r}, 0.0]\nnegate: 0\noccupied_thresh: {OCCUPIED_THRESH}\n"
             f"free_thresh: {FREE_THRESH}\n")

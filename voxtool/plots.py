@@ -174,20 +174,25 @@ def _nearest_pixels(u: np.ndarray, w: np.ndarray, depth: np.ndarray, extent, sha
 
 
 def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: float | None = None,
-                 view: str = "top"):
-    """`clean` before and after, seen from above (or, as export's pictures, from the front or
-    the side): every point by height (depth for front/side) with the removed ones in red, then
-    the static points alone (same axes). `extent_m`: a square of that side around the points'
-    median (a long drive is otherwise too small to judge). The points are drawn as pixels of a
-    raster (the nearest point of each): a scatter plot of a million points took 5 s to draw."""
-    from voxtool.io.picture import height_colours
+                 view: str = "top", below_roof: bool = True) -> tuple:
+    """(figure, roof height or None): `clean` before and after, seen from above (or, as export's pictures, from the front or
+    the side): every point by height (depth for front/side, with a colour bar) with the removed
+    ones in red, then the static points alone (same axes): side by side, or one above the other
+    where the view is wide (a side view). `extent_m`: a square of that side around the points'
+    median (a long drive is otherwise too small to judge). A top view of a place with a roof is
+    drawn below it, as export's pictures are. The points are drawn as pixels of a raster (the
+    nearest point of each): a scatter plot of a million points took 5 s to draw."""
+    from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.figure import Figure
+
+    from voxtool.io.picture import COLORMAP, height_colours, roof_of
 
     u, w, c = CLEAN_VIEWS[view]
     points = points[:, [u, w, c]].astype(np.float64)
-    fig = _figure(1, 5.2)
-    before, after = fig.subplots(1, 2, sharex=True, sharey=True)
+    static = ~dynamic
     z = points[:, 2]
-    lo, hi = np.percentile(z, [1, 99]) if z.size else (0.0, 1.0)
     if extent_m is not None and z.size:
         cx, cy = np.median(points[:, 0]), np.median(points[:, 1])
         extent = (cx - extent_m / 2, cx + extent_m / 2, cy - extent_m / 2, cy + extent_m / 2)
@@ -196,30 +201,55 @@ def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: 
         extent = (u0, u1 if u1 > u0 else u0 + 1.0, w0, w1 if w1 > w0 else w0 + 1.0)
     else:
         extent = (0.0, 1.0, 0.0, 1.0)
-    scale = CLEAN_RASTER / max(extent[1] - extent[0], extent[3] - extent[2])
+    aspect = (extent[3] - extent[2]) / (extent[1] - extent[0])
+    stacked = aspect < 0.6  # a wide view: one panel above the other, each the page's width (twice the pixels)
+    scale = CLEAN_RASTER * (2 if stacked else 1) / max(extent[1] - extent[0], extent[3] - extent[2])
     shape = (max(1, int(round((extent[3] - extent[2]) * scale))), max(1, int(round((extent[1] - extent[0]) * scale))))
-    static = ~dynamic
+    roof = None
+    if view == "top" and below_roof and z.size:
+        # on a coarser raster (about export's voxel pixels): points are sparser than voxels, and
+        # on the drawing's raster a roof's returns cover too few of the pixels to be found
+        _, shown = _nearest_pixels(points[:, 0], points[:, 1], z, extent, (max(1, shape[0] // 8), max(1, shape[1] // 8)))
+        roof = roof_of(z[shown])
+    drawn = np.ones(len(z), bool) if roof is None else z < roof
+    lo, hi = np.percentile(z[drawn], [1, 99]) if drawn.any() else (0.0, 1.0)
+    hi = max(hi, lo + 1e-6)
     colours = height_colours(np.clip(z, lo, hi), (float(lo), float(hi)))
-    kept = np.flatnonzero(static)
+    kept = np.flatnonzero(static & drawn)
     pixel, which = _nearest_pixels(points[kept, 0], points[kept, 1], z[kept], extent, shape)
     after_image = np.ones((shape[0] * shape[1], 4))
     after_image[:, 3] = 0.0  # transparent where no point lies
     after_image[pixel, :3] = colours[kept[which], :3]
     after_image[pixel, 3] = 1.0
     before_image = after_image.copy()
-    if dynamic.any():  # the removed ones in red, over everything, 2 x 2 pixels
-        gone = np.flatnonzero(dynamic)
+    gone = np.flatnonzero(dynamic & drawn)
+    if gone.size:  # the removed ones in red, over everything, 2 x 2 pixels
         pixel, _ = _nearest_pixels(points[gone, 0], points[gone, 1], z[gone], extent, shape)
         for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
             r, cl = pixel // shape[1] + dr, pixel % shape[1] + dc
             ok = (r < shape[0]) & (cl < shape[1])
             before_image[r[ok] * shape[1] + cl[ok]] = (1.0, 0.0, 0.0, 1.0)
+
+    if stacked:
+        fig = Figure(figsize=(10, float(np.clip(2 * 8.4 * aspect, 1.0, 12)) + 1.5), dpi=120, layout="constrained")
+        before, after = fig.subplots(2, 1, sharex=True, sharey=True)
+    else:
+        fig = Figure(figsize=(10, float(np.clip(4.3 * aspect, 2.5, 9)) + 1.6), dpi=120, layout="constrained")
+        before, after = fig.subplots(1, 2, sharex=True, sharey=True)
     for ax, name, image in ((before, "before", before_image), (after, "after", after_image)):
         ax.imshow(image.reshape(shape[0], shape[1], 4), origin="lower", extent=extent, interpolation="nearest",
                   aspect="equal")
-        ax.set_xlabel(f"{'xyz'[u]} (m)")
         ax.set_title(f"{name}: {int(static.sum()):,} static points"
                      + (f", {int(dynamic.sum()):,} removed (red)" if name == "before" else ""), fontsize=9)
-    before.set_ylabel(f"{'xyz'[w]} (m)")
-    fig.suptitle(f"{title}, {view} view ({'xyz'[c]}: {lo:.1f} to {hi:.1f} m, viridis)", fontsize=10)
-    return fig
+        ax.set_ylabel(f"{'xyz'[w]} (m)")
+        ax.set_xlabel(f"{'xyz'[u]} (m)")
+    if stacked:
+        before.set_xlabel("")
+    else:
+        after.set_ylabel("")
+    what = "height" if view == "top" else f"{'xyz'[c]} (depth, nearest point drawn)"
+    fig.colorbar(ScalarMappable(Normalize(float(lo), float(hi)), colormaps[COLORMAP]), ax=[before, after],
+                 shrink=0.8, label=f"{what} (m)", location="bottom" if not stacked else "right")
+    note = "" if roof is None else f", below the roof at {roof:.2f} m ({int((~drawn).sum()):,} points above it not drawn)"
+    fig.suptitle(f"{title}, {view} view{note}", fontsize=10)
+    return fig, roof

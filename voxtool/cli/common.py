@@ -171,7 +171,7 @@ def summary_rows(stats: dict) -> list[tuple[str, str]]:
     rows.append(("occupied bbox", f"{bbox['min']} .. {bbox['max']}" if bbox else "(empty)"))
     if any(stats.get("origin") or ()):
         rows.append(("local origin", f"{stats['origin']} in the scans' frame (the bbox and a .bt are relative to it; "
-                                     ".ply/.pcd/.mcap exports are in the scans' frame)"))
+                                     ".ply/.pcd/.mcap/.pgm exports are in the scans' frame)"))
     if "scans" in stats:
         why = [f"{stats.get(k, 0):,} {what}" for k, what in (("points_dropped_nonfinite", "not finite (NaN/Inf) or below a LaserScan's range_min"),
                                                                 ("points_dropped_min_range", "nearer than --min-range"))

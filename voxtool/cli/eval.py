@@ -52,7 +52,8 @@ def eval_cmd(source, sample, holdout_every, holdout, threads, min_correct, png, 
     figures, disagree, map_leaves = evaluate(source, options, params, sensor, every, listed, threads, progress)
     written = None
     if png is not None:
-        figures["png"] = _draw(png, disagree, map_leaves, params.resolution, sensor.threshold_log, view, source)
+        figures["png"] = _draw(png, disagree, map_leaves, params.resolution, sensor.threshold_log, view, source,
+                               figures["total"])
         written = png
     rows = [(f"scan {r['index']}", _counts(r)) for r in figures["per_scan"]]
     rows += [("held out", f"{len(figures['held_out'])} of {figures['scans']} scans (map of the other "
@@ -67,7 +68,10 @@ def _counts(row: dict) -> str:
     return f"correct {row['correct']:,}, wrong {row['wrong']:,}, unknown {row['unknown']:,}: {pct} correct"
 
 
-def _draw(png, disagree, map_leaves, resolution, threshold_log, view, source):
+def _draw(png, disagree, map_leaves, resolution, threshold_log, view, source, total):
+    """The held-out points' disagreements as voxels over the map. The totals count points, scan by
+    scan; the picture shows each voxel once (many points fall in one voxel; a voxel some scan got
+    wrong and another found unknown is drawn as wrong), so the legend gives both."""
     from voxtool.errors import ParameterError
     from voxtool.io.picture import write_overlay_png
     from voxtool.maps.base import Leaves
@@ -75,8 +79,10 @@ def _draw(png, disagree, map_leaves, resolution, threshold_log, view, source):
     if disagree is None:
         raise ParameterError(f"{png}: the held-out scans agree with the map everywhere: nothing to draw")
     wrong = disagree.values > 0
-    layers = [(name, Leaves(disagree.codes[m], disagree.depths[m], disagree.values[m]), rgb, int(m.sum()))
-              for name, m, rgb in (("unknown to the map", ~wrong, (0.95, 0.60, 0.15)),
-                                   ("wrong", wrong, (0.85, 0.10, 0.10)))]
+    layers = [(name, Leaves(disagree.codes[m], disagree.depths[m], disagree.values[m]), rgb, int(m.sum()),
+               f"{name}: {total[key]:,} points in {int(m.sum()):,} voxels")
+              for name, key, m, rgb in (("unknown to the map", "unknown", ~wrong, (0.95, 0.60, 0.15)),
+                                        ("wrong", "wrong", wrong, (0.85, 0.10, 0.10)))]
     return write_overlay_png(png, [(map_leaves, threshold_log)], layers, resolution, view,
-                             f"held-out scans of {source.name} against the map of the others")
+                             f"held-out scans of {source.name} against the map of the others "
+                             "(points counted scan by scan, voxels once; a voxel wrong in any scan is drawn wrong)")

@@ -66,6 +66,19 @@ def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_ran
 
     written = export_map(map_file, output, include_free, progress, view=view, slice_z=slice_z, crop=box,
                          z_range=parse_z_range(z_range))
-    rows = [(key.replace("_", " "), f"{value:,}" if isinstance(value, int) else str(value))
-            for key, value in written.items() if value is not None]
+    rows = [(key.replace("_", " "), value_text(value)) for key, value in written.items() if value is not None]
     emit(written, as_json, rows, written=[output, Path(written["yaml"])] if "yaml" in written else output)
+
+
+def value_text(value) -> str:
+    """A figure as the text summary prints it: thousands separated, lists and nested figures
+    as words (not Python's dict and list syntax)."""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return f"{value:,}"
+    if isinstance(value, list | tuple):
+        return ", ".join(value_text(v) for v in value)
+    if isinstance(value, dict):
+        return ", ".join(f"{key.replace('_', ' ')} {value_text(v)}" for key, v in value.items())
+    return str(value)

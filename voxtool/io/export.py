@@ -174,8 +174,10 @@ def grid_yaml_path(path: Path) -> Path:
 
 
 def write_pgm(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-              z_range: tuple | None = None) -> dict:
-    """A 2D occupancy grid for nav2's map_server: the image and its YAML beside it (voxtool.grid)."""
+              z_range: tuple | None = None, origin=None) -> dict:
+    """A 2D occupancy grid for nav2's map_server: the image and its YAML beside it (voxtool.grid).
+    The YAML's origin is in the scans' frame (a map built about --origin is shifted back, as the
+    .mcap's OccupancyGrid is), and says so; --z-range stays in the map's local heights."""
     from voxtool.atomic import check_writable
     from voxtool.grid import map_yaml, pgm_bytes, project
 
@@ -187,8 +189,9 @@ def write_pgm(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
     with atomic_writer(path) as handle:
         handle.write(pgm_bytes(grid))
     with atomic_writer(yaml_path) as handle:
-        handle.write(map_yaml(grid, path.name).encode())
-    return {"format": "pgm", "yaml": str(yaml_path), "origin": list(grid.origin),
+        handle.write(map_yaml(grid, path.name, origin).encode())
+    shift = (0.0, 0.0) if origin is None else (float(origin[0]), float(origin[1]))
+    return {"format": "pgm", "yaml": str(yaml_path), "origin": [grid.origin[0] + shift[0], grid.origin[1] + shift[1]],
             "z_range": list(z_range) if z_range else None, **grid.counts()}
 
 
@@ -203,4 +206,4 @@ EXPORTERS: dict[str, Callable[[Path, Leaves, float, float, bool], dict]] = {
     ".pgm": write_pgm,
 }
 TAKES_Z_RANGE = (".pgm", ".mcap")  # outputs with a 2D grid projected in --z-range
-TAKES_ORIGIN = (".ply", ".pcd", ".mcap")  # outputs written in the scans' frame of a map built about --origin
+TAKES_ORIGIN = (".ply", ".pcd", ".mcap", ".pgm")  # outputs written in the scans' frame of a map built about --origin

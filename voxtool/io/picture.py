@@ -222,11 +222,16 @@ ROOF_BAND = 0.2  # of the map's occupied height range: the top band a roof lies 
 
 def roof_height(raster: Raster, resolution: float) -> float | None:
     """The lowest height of a roof or ceiling that hides a top view's floor plan (metres), or
-    None: more than ROOF_SHARE of the occupied pixels show their top within the highest
-    ROOF_BAND of the occupied heights, over a range of at least 2 m (a room, a shack, a hall;
-    outdoors, trees and buildings cover too little for it)."""
+    None (roof_of on the raster's occupied pixels' tops)."""
     tops = raster.values_m(resolution)
-    tops = tops[~np.isnan(tops)]
+    return roof_of(tops[~np.isnan(tops)], resolution / 2)
+
+
+def roof_of(tops: np.ndarray, half_voxel: float = 0.0) -> float | None:
+    """The roof under which a top view shows the floor plan, from what each pixel shows from
+    above (`tops`, metres), or None: more than ROOF_SHARE of the pixels show their top within the
+    highest ROOF_BAND of the heights, over a range of at least 2 m (a room, a shack, a hall;
+    outdoors, trees and buildings cover too little for it)."""
     if tops.size < 100:
         return None
     lo, hi = float(tops.min()), float(tops.max())
@@ -235,7 +240,7 @@ def roof_height(raster: Raster, resolution: float) -> float | None:
     band = tops[tops >= hi - ROOF_BAND * (hi - lo)]
     if band.size < ROOF_SHARE * tops.size:
         return None
-    return float(np.percentile(band, 2)) - resolution / 2  # the roof's lower edge
+    return float(np.percentile(band, 2)) - half_voxel  # the roof's lower edge
 
 
 def write_png(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
@@ -290,8 +295,9 @@ def write_leaf_sets(path: Path, leaf_sets, resolution: float, include_free: bool
                 raster = below
                 note = (f" · below the roof at {roof:.2f} m (the floor plan; --crop with another zmax to choose the "
                         "heights, --view side for the walls)")
-    width, height = save(figure(raster, resolution, (label or path.stem) + note), path)
-    out = {**figures(raster), "width": width, "height": height}
+    caption = (label or path.stem) + note
+    width, height = save(figure(raster, resolution, caption), path)
+    out = {**figures(raster), "width": width, "height": height, "caption": caption}
     if note:
         out["below_roof_m"] = round(roof, 6)
     return out
@@ -322,11 +328,12 @@ def write_overlay_png(path: Path, background, layers: list, resolution: float, v
     """Coloured voxels over a map drawn in grey (export .png's conventions: view, axes in metres,
     scale bar, caption), framed on the coloured voxels, with a legend. `background`: the map's
     (leaves, threshold) part by part; `layers`: (name, leaves, rgb, count) drawn in order (the
-    last wins a pixel)."""
+    last wins a pixel), or (name, leaves, rgb, count, legend) where the legend text is not
+    "name (count voxels)"."""
     from matplotlib.patches import Patch
 
     check_options(view, None)
-    spans = [b for b in (key_bounds(leaves) for _, leaves, _, _ in layers) if b is not None]
+    spans = [b for b in (key_bounds(layer[1]) for layer in layers) if b is not None]
     if not spans:
         raise ParameterError(f"{path}: nothing to draw")
     bounds = (np.min([b[0] for b in spans], axis=0), np.max([b[1] for b in spans], axis=0))
@@ -336,10 +343,10 @@ def write_overlay_png(path: Path, background, layers: list, resolution: float, v
     for leaves, threshold in background:
         base.add(leaves, threshold)
     masks = []
-    for name, leaves, rgb, count in layers:
+    for name, leaves, rgb, count, *legend in layers:
         raster = Raster.covering(view, kmin, kmax)
         raster.add(Leaves(leaves.codes, leaves.depths, np.ones(len(leaves), np.float32)), 0.0)
-        masks.append((name, raster.state == OCCUPIED, rgb, count))
+        masks.append((name, raster.state == OCCUPIED, rgb, count, legend[0] if legend else f"{name} ({count:,} voxels)"))
     fig = figure(base, resolution, label)
     ax = fig.axes[0]
     state = base.state.reshape(base.height, base.width)
@@ -347,18 +354,19 @@ def write_overlay_png(path: Path, background, layers: list, resolution: float, v
     pixels[:] = UNKNOWN_RGB
     pixels[state == FREE] = FREE_RGB
     pixels[state == OCCUPIED] = BACKGROUND_OCCUPIED_RGB
-    for _, mask, rgb, _ in masks:
+    for _, mask, rgb, _, _ in masks:
         pixels[mask.reshape(base.height, base.width)] = rgb
     ax.images[0].set_data(pixels)
     for extra in fig.axes[1:]:  # the height colour bar belongs to the plain map's picture
         extra.remove()
-    handles = [Patch(facecolor=rgb, edgecolor="0.5", label=f"{name} ({count:,} voxels)") for name, _, rgb, count in masks]
+    handles = [Patch(facecolor=rgb, edgecolor="0.5", label=legend) for _, _, rgb, _, legend in masks]
     handles += [Patch(facecolor=BACKGROUND_OCCUPIED_RGB, edgecolor="0.5", label=f"{background_name} occupied"),
                 Patch(facecolor=FREE_RGB, edgecolor="0.5", label=f"{background_name} free"),
                 Patch(facecolor=UNKNOWN_RGB, edgecolor="0.5", label="unknown")]
     ax.legend(handles=handles, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=3, fontsize=8, frameon=False)
     width, height = save(fig, path)
     return {"format": "png", "view": view, "width": width, "height": height,
-            "changed_pixels": int(sum(m.sum() for _, m, _, _ in masks)),
-            "voxels": {name: count for name, _, _, count in masks},
+            "changed_pixels": int(sum(m[1].sum() for m in masks)),
+            "voxels": {name: count for name, _, _, count, _ in masks},
+            "legend": [legend for *_, legend in masks],
             "background_known_pixels": int(((base.state == FREE) | (base.state == OCCUPIED)).sum())}

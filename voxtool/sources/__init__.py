@@ -57,7 +57,13 @@ class BadScans:
 
     def __call__(self, index: int, err: SourceError) -> None:
         if self.policy == "fail":
-            raise err
+            if "--bad-scans" in str(err):
+                raise err
+            import copy
+
+            named = copy.copy(err)  # the same error (class, exit code), its line naming the way on
+            named.args = (f"{err}; --bad-scans skip leaves out the scans that cannot be read, with a warning",)
+            raise named from err
         import warnings
 
         from voxtool.errors import VoxtoolWarning

@@ -29,10 +29,13 @@ class PcdCloud:
 def _header(path: Path, blob: bytes) -> tuple[dict[str, list[str]], int]:
     fields: dict[str, list[str]] = {}
     pos = 0
+    if not blob:
+        raise SourceError(f"{path}: the file is empty (0 bytes): no PCD header, no points (an interrupted write or copy?)")
     for _ in range(64):
         end = blob.find(b"\n", pos)
         if end < 0:
-            raise SourceError(f"{path}: PCD header has no DATA line")
+            raise SourceError(f"{path}: the file ends after {len(blob):,} bytes inside its PCD header, before the "
+                              "DATA line (cut short, or not a PCD file)")
         line = blob[pos:end].decode("ascii", errors="replace").strip()
         pos = end + 1
         if not line or line.startswith("#"):

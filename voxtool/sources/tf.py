@@ -167,6 +167,10 @@ class SensorPoses:
                         prev[b] = (a, (parent, child), forward)
                         queue.append(b)
         if frame not in prev:
+            frames = sorted({f for edge in self.edges for f in edge})
+            if frames and self.world_frame not in frames:
+                raise NoPoseSource(f"{self.where}: --world-frame {self.world_frame} is not a frame of its /tf "
+                                   f"(its frames: {', '.join(frames)}); or {pose_hint(self.where, frame, self.topics)}")
             raise NoPoseSource(f"{self.where}: no transform chain from '{self.world_frame}' to '{frame}' in /tf; "
                               f"{pose_hint(self.where, frame, self.topics)}")
         pose = Pose.identity()
