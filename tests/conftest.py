@@ -25,6 +25,19 @@ def shared_data() -> Path:
     return SHARED
 
 
+FETCHED = Path(__file__).resolve().parents[1] / ".fetched"
+
+
+@pytest.fixture(scope="session")
+def kitti_sample() -> Path:
+    """SemanticKITTI frames 0-9 of sequences 00 and 05 (scripts/fetch_kitti_sample.py lays them out
+    from a public repository; not in git: KITTI's licence is non-commercial)."""
+    root = FETCHED / "mini_kitti" / "sequences"
+    if not (root / "00" / "velodyne").is_dir():
+        pytest.skip("the KITTI sample is absent (python scripts/fetch_kitti_sample.py GIT_DIR)")
+    return root
+
+
 def cli(*args):
     """Run the voxtool command line in this process: (exit code, stdout, stderr)."""
     from click.testing import CliRunner

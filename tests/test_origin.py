@@ -219,3 +219,91 @@ def test_world_frame_doubles_keep_their_precision_until_the_origin_is_subtracted
     # the float32 reading this replaces moves y by up to a quarter metre: another map
     y32 = worlds[0][0][:, 1].astype(np.float32).astype(np.float64)
     assert np.abs(y32 - worlds[0][0][:, 1]).max() > 0.05
+
+
+@pytest.fixture(scope="module")
+def near_scans(far_scans, tmp_path_factory):
+    """The far scans moved by -origin (the origin --origin auto picks) in float64: the same scans
+    near the frame's origin, and that origin."""
+    d, scans = far_scans
+    origin = np.round(scans[0][1].translation / RES) * RES
+    near = tmp_path_factory.mktemp("near")
+    for i, (pts, pose) in enumerate(scans):
+        q = yaw_quat(0.0)
+        shifted = Pose(pose.rotation, pose.translation - origin)
+        from voxtool.geometry import matrix_to_quat
+
+        qw, qx, qy, qz = matrix_to_quat(shifted.rotation)
+        write_pcd(near / f"{i}.pcd", pts, (*shifted.translation, qw, qx, qy, qz))
+        assert q is not None
+    return near, origin
+
+
+def test_eval_about_a_local_origin_counts_what_it_counts_near_the_origin(far_scans, near_scans, tmp_path):
+    d, _ = far_scans
+    near, origin = near_scans
+    code, _, err = cli("eval", d, "--resolution", RES, "--holdout-every", 2, "--no-progress")
+    assert code == 4 and "--origin auto" in err, err
+    code, text, err = cli("eval", d, "--resolution", RES, "--holdout-every", 2, "--origin", "auto", "--json",
+                          "--no-progress")
+    assert code == 0, err
+    far = json.loads(text)
+    expected = json.loads(cli("eval", near, "--resolution", RES, "--holdout-every", 2, "--json", "--no-progress")[1])
+    assert far["origin"] == pytest.approx(origin.tolist())
+    assert far["total"] == expected["total"] and far["total"]["correct"] > 100
+
+
+def test_encode_about_a_local_origin_carries_it_in_every_packet(far_scans, tmp_path):
+    """encode --origin: every packet's map_origin is the origin; merge's map is build's map about
+    it (same occupied voxels) and records it, so exports go back to the scans' frame; logs
+    about two origins are refused."""
+    d, _ = far_scans
+    log = tmp_path / "r1.mcap"
+    code, text, err = cli("encode", d, "-o", log, "--resolution", RES, "--origin", "auto", "--json", "--no-progress")
+    assert code == 0, err
+    from voxtool.codec.fusion import packets_of
+
+    packets = packets_of(log)
+    built = tmp_path / "built.vxm"
+    code, text, err = cli("build", d, "-o", built, "--resolution", RES, "--origin", "auto", "--json", "--no-progress")
+    origin = json.loads(text)["origin"]
+    assert packets and all(list(p.map_origin) == pytest.approx(origin) for p in packets)
+    merged = tmp_path / "merged.vxm"
+    code, _, err = cli("merge", log, "-o", merged, "--no-progress")
+    assert code == 0, err
+    a, _, thr_a, meta = load_leaves(merged)
+    b, _, thr_b, _ = load_leaves(built)
+    assert meta["info"]["origin"] == pytest.approx(origin)
+    assert np.array_equal(voxel_set(a, thr_a)[0], voxel_set(b, thr_b)[0])
+    x, y, z = (v + 1.0 for v in origin)
+    other = tmp_path / "r2.mcap"
+    assert cli("encode", d, "-o", other, "--resolution", RES, "--origin", f"{x},{y},{z}", "--robot", "r2",
+               "--no-progress")[0] == 0
+    code, _, err = cli("merge", log, other, "-o", tmp_path / "both.vxm", "--no-progress")
+    assert code == 5 and "map origin" in err and "one --origin" in err and err.count("\n") == 1, err
+
+
+def test_graph_export_and_cache_bench_about_a_local_origin(far_scans, tmp_path):
+    """A .graph of far scans about --origin auto holds the shifted scans (OctoMap keeps float32),
+    with the origin on whole metres; its map is the map of the far scans built about that origin.
+    cache-bench takes --origin too."""
+    d, _ = far_scans
+    graph = tmp_path / "s.graph"
+    code, text, err = cli("export", d, "-o", graph, "--origin", "auto", "--json")
+    assert code == 0, err
+    origin = json.loads(text)["origin"]
+    assert origin == [round(v) for v in origin] and np.abs(np.array(origin) - FAR).max() < 10
+    a, b = tmp_path / "g.vxm", tmp_path / "f.vxm"
+    assert cli("build", graph, "-o", a, "--resolution", RES, "--no-progress")[0] == 0
+    assert cli("build", d, "-o", b, "--resolution", RES, "--origin", ",".join(map(str, origin)), "--no-progress")[0] == 0
+    la, _, ta, _ = load_leaves(a)
+    lb, _, tb, _ = load_leaves(b)
+    assert np.array_equal(voxel_set(la, ta)[0], voxel_set(lb, tb)[0])
+    code, _, err = cli("export", a, "-o", tmp_path / "m.ply", "--origin", "auto")
+    assert code == 2 and "--origin is for scans exported as .graph" in err
+    code, _, err = cli("cache-bench", d, "--resolution", RES, "--tau", "2", "--buckets", "64")
+    assert code == 4 and "--origin auto" in err and err.count("\n") == 1, err  # the worker's error, as itself
+    code, text, err = cli("cache-bench", d, "--resolution", RES, "--origin", "auto", "--tau", "2", "--buckets", "64",
+                          "--json")
+    assert code == 0, err
+    assert all(row["identical_to_octree"] for row in json.loads(text)["rows"])

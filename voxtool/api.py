@@ -184,11 +184,15 @@ def encode_log(source, output, options: SourceOptions, params: MapParams, sensor
         # a packet carries the voxels a scan updated; decay changes voxels no scan touched
         raise ParameterError("decay_half_life is a build option: packet logs carry each scan's updates, not decay")
     mapper = make_backend(backend_name, params, sensor, **backend_options)
+    options = resolve_origin(source, options, params.resolution)
+    # every packet's map_origin field says where the map's keys sit in the scans' frame
+    encode_options = replace(encode_options, map_origin=tuple(origin_of(options)))
     stream = open_source(source, options)
-    info = {"source": str(source), "backend": backend_name,
+    info = {"source": str(source), "backend": backend_name, "origin": origin_of(options),
             "backend_params": {k: v for k, v in backend_options.items() if k != "schedule"},
             "map_params": params.to_dict(), "sensor_model": sensor.to_dict()}
-    result = encode_stream(stream, mapper, output, encode_options, info, progress)
+    with origin_hint(options):
+        result = encode_stream(stream, mapper, output, encode_options, info, progress)
     extra = mapper.extra_stats()
     result.update({k: extra[k] for k in DROP_FIGURES if extra.get(k)})
     return result
@@ -375,7 +379,13 @@ def export_scans(source: str | os.PathLike, output: str | os.PathLike, options: 
     if Path(output).suffix.lower() != ".graph":
         raise ParameterError(f"{output}: scans are exported as an OctoMap .graph")
     check_writable(output)
-    return write_graph(output, open_source(source, options or SourceOptions()), progress)
+    # about a local origin (--origin), the graph holds the shifted scans: OctoMap keeps float32 points and
+    # poses. The origin snaps to whole metres, on the voxel grid of every resolution that divides 1 m.
+    options = resolve_origin(source, options or SourceOptions(), 1.0)
+    written = write_graph(output, open_source(source, options), progress)
+    if options.origin is not None:
+        written["origin"] = origin_of(options)
+    return written
 
 
 def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False,

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from voxtool import errors
 from voxtool.errors import VoxtoolError
 
 
@@ -76,6 +77,11 @@ def _spawn(source, options, params, sensor, backend, cfg, workdir: Path, tag: st
     proc = subprocess.run([sys.executable, "-m", "voxtool.cachebench", spec], capture_output=True, text=True)
     if proc.returncode != 0:
         lines = proc.stderr.strip().splitlines()
+        try:  # a voxtool error in the worker is raised here as itself (its class gives the exit code)
+            failure = json.loads(lines[-1])
+            raise getattr(errors, failure["error"])(failure["message"])
+        except (IndexError, ValueError, KeyError, TypeError, AttributeError):
+            pass
         raise VoxtoolError(f"cache-bench worker for {tag} failed: {lines[-1] if lines else proc.returncode}")
     result = json.loads(proc.stdout)
     result["leaves_file"] = str(leaves)
@@ -108,5 +114,9 @@ def cache_bench(source, options: dict, params: dict, sensor: dict, taus: list[in
 
 if __name__ == "__main__":
     spec = json.loads(sys.argv[1])
-    print(json.dumps(run_config(spec["source"], spec["options"], spec["params"], spec["sensor"], spec["backend"],
-                                spec["cfg"], spec["leaves_out"])))
+    try:
+        print(json.dumps(run_config(spec["source"], spec["options"], spec["params"], spec["sensor"], spec["backend"],
+                                    spec["cfg"], spec["leaves_out"])))
+    except VoxtoolError as err:  # for _spawn to raise as itself
+        print(json.dumps({"error": type(err).__name__, "message": str(err)}), file=sys.stderr)
+        sys.exit(1)

@@ -330,6 +330,7 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     t_read = time.perf_counter() - t0
     report = build(dataclasses.replace(stream, scans=iter(scans)), void_map, progress)
     clouds = [scan.points for scan in scans]  # as read: build casts each scan unchanged
+    truths = [scan.extra.get("truth") for scan in scans]  # ground truth per point (--truth), where given
     del scans
     t0 = time.perf_counter()
     points = np.concatenate(clouds) if clouds else np.empty((0, 3), dtype=np.float32)
@@ -348,6 +349,10 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
                       "raycast": built["timings_s"]["raycast"], "void_update": built["timings_s"]["update"],
                       "scans_total": built["timings_s"]["total"], "classify": round(t_classify, 6)},
     }
+    if truths and all(t is not None for t in truths):
+        truth = np.concatenate(truths)
+        figures["accuracy"] = {**{k: round(v, 4) for k, v in accuracy(dynamic, truth).items()},
+                               "dynamic_points": int(truth.sum()), "static_points": int((~truth).sum())}
     return Cleaned(points, dynamic, starts, figures)
 
 

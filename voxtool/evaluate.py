@@ -72,7 +72,10 @@ def evaluate(source: str | os.PathLike, options: SourceOptions, params: MapParam
 
     if options.start or options.every != 1:
         raise ParameterError("eval counts scans from the source's first: use --stop (OctoMap's -n), not --start/--every")
+    from voxtool.sources import resolve_origin
+
     t0 = time.perf_counter()
+    options = resolve_origin(source, options, params.resolution)
     count = _count_scans(source, options)
     held = holdout_indices(count, every, listed)
     held_set = set(held.tolist())
@@ -101,6 +104,7 @@ def evaluate(source: str | os.PathLike, options: SourceOptions, params: MapParam
     total["percent_correct"] = _percent(total["correct"], total["wrong"])
     figures = {"source": str(source), "resolution": params.resolution, "max_range": params.max_range,
                "scans": count, "scans_built": report.scans, "held_out": [int(i) for i in held],
+               "origin": [float(v) for v in options.origin] if options.origin is not None else [0.0, 0.0, 0.0],
                "total": total, "per_scan": rows,
                "timings_s": {"build": round(t_build, 6), "total": round(time.perf_counter() - t0, 6)}}
     return figures, _disagreement(wrong_codes, unknown_codes), backend.leaves()

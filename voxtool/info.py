@@ -71,6 +71,15 @@ def _file_pose_source(path: Path, kind: str, options: SourceOptions) -> str:
         return "each PCD's VIEWPOINT (times from the poses.txt beside the scans, when there is one)"
     if kind == "graph":
         return "the graph's node poses"
+    if kind == "kitti":
+        from voxtool.sources.kitti import pose_file, sequence_dir
+
+        found = pose_file(sequence_dir(path))
+        if found is None:
+            return "none: no poses.txt (voxtool odometry estimates them)"
+        return f"{found.name}, the camera's poses moved to the LiDAR by calib.txt's Tr (times from times.txt)"
+    if kind == "ply":
+        return "none: PLY scans need --poses (voxtool odometry estimates them)"
     return "none"
 
 

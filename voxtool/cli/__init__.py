@@ -30,6 +30,7 @@ from voxtool.cli.eval import eval_cmd  # noqa: E402
 from voxtool.cli.export import export  # noqa: E402
 from voxtool.cli.info import info  # noqa: E402
 from voxtool.cli.merge import merge  # noqa: E402
+from voxtool.cli.odometry import odometry  # noqa: E402
 from voxtool.cli.query import query  # noqa: E402
 from voxtool.cli.stats import stats  # noqa: E402
 from voxtool.cli.view import view  # noqa: E402
@@ -69,7 +70,7 @@ def main() -> None:
     """
 
 
-for _command in (build, info, clean, eval_cmd, cache_bench_cmd, encode, decode, merge, query, stats, diff, export,
+for _command in (build, info, odometry, clean, eval_cmd, cache_bench_cmd, encode, decode, merge, query, stats, diff, export,
                  view, compile_cmd):
     main.add_command(_command)
 

@@ -12,6 +12,7 @@ from voxtool.cli.common import (
     check_plot,
     handle_errors,
     int_list,
+    origin_option,
     plot_option,
     resolve_source,
     scan_options,
@@ -24,6 +25,7 @@ from voxtool.cli.common import (
 @click.argument("source", required=False, type=click.Path(path_type=Path))
 @click.option("--sample", is_flag=True, help="Use the shipped sample as SOURCE.")
 @scan_options
+@origin_option
 @click.option("--tau", default="4", show_default=True, help="Bucket threshold(s) after eviction, comma-separated sweep.")
 @click.option("--buckets", default="", help="Bucket count(s) (powers of two), comma-separated; default: the paper's rule.")
 @click.option("--order", default="morton", show_default=True,
@@ -42,6 +44,10 @@ def cache_bench_cmd(source, sample, tau, buckets, order, overlap, threads, as_js
     from voxtool.errors import ParameterError, VoxtoolError
 
     options, params, sensor = scan_setup(kw)
+    source = resolve_source(source, sample)
+    from voxtool.sources import resolve_origin
+
+    options = resolve_origin(source, options, params.resolution)  # once, here: every configuration reads the same
     orders = [o.strip() for o in order.split(",") if o.strip()]
     try:
         taus, bucket_list, overlaps = int_list(tau), int_list(buckets) or [None], int_list(overlap)
@@ -52,8 +58,11 @@ def cache_bench_cmd(source, sample, tau, buckets, order, overlap, threads, as_js
         click.echo(f"[{k + 1}/{n}] {backend} {cfg}", err=True)
 
     check_plot(plot)
-    result = cache_bench(resolve_source(source, sample), options.__dict__, params.to_dict(), sensor.to_dict(),
-                         taus, bucket_list, orders, overlaps, threads, progress if sys.stderr.isatty() else None)
+    from voxtool.api import origin_hint
+
+    with origin_hint(options):
+        result = cache_bench(source, options.__dict__, params.to_dict(), sensor.to_dict(),
+                             taus, bucket_list, orders, overlaps, threads, progress if sys.stderr.isatty() else None)
     rows = result["rows"]
     if plot is not None:
         from voxtool.plots import cache_figure, write_plot

@@ -43,6 +43,9 @@ from voxtool.cli.common import (
                    "points lie in void voxels.")
 @click.option("--max-range", default=-1.0, show_default=True, type=float,
               help="Rays are cut here and give no evidence beyond; < 0 = unlimited.")
+@click.option("--truth", type=click.Path(path_type=Path, file_okay=False), metavar="LABELS_DIR",
+              help="Score the result against ground truth: a folder of SemanticKITTI .label files, one per scan "
+                   "file (000123.label for 000123.bin/.pcd; moving classes 252-259 are dynamic): SA, DA, AA.")
 @source_options
 @origin_option
 @threads_option
@@ -50,7 +53,7 @@ from voxtool.cli.common import (
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
 def clean(source, sample, output, labels, dynamic, png, view, resolution, sensor_noise, pose_error, group_share, max_range,
-          origin, threads, as_json, progress, **kw):
+          truth, origin, threads, as_json, progress, **kw):
     """Judge every point of SOURCE static or dynamic and write the static map (-o) and/or the labels.
 
     A point is dynamic when another scan saw through the space it occupies: its voxel is void
@@ -63,11 +66,16 @@ def clean(source, sample, output, labels, dynamic, png, view, resolution, sensor
     Examples:
       voxtool clean scans/ -o static.pcd
       voxtool clean drive.mcap -o static.ply --labels labels.npy --json
-      voxtool clean scans/ -o static.pcd --resolution 0.2 --sensor-noise 0.3"""
+      voxtool clean scans/ -o static.pcd --resolution 0.2 --sensor-noise 0.3
+      voxtool clean sequences/08 -o static.pcd --truth sequences/08/labels   SemanticKITTI: SA, DA, AA"""
     from voxtool.clean import CleanParams, clean_source
 
     source = resolve_source(source, sample)
     options = with_origin(source_setup(kw), origin)
+    if truth is not None:
+        from dataclasses import replace
+
+        options = replace(options, truth=str(truth))
     params = CleanParams(resolution=resolution, sensor_noise=sensor_noise, pose_error=pose_error, max_range=max_range,
                          group_share=group_share)
     result = clean_source(source, options, params, output, labels, threads, progress, dynamic, png, view)
@@ -84,5 +92,9 @@ def clean(source, sample, output, labels, dynamic, png, view, resolution, sensor
                  f"{t['raycast']:.3f} s, void map {t['void_update']:.3f} s), judging {t['classify']:.3f} s, "
                  f"writing {t['write']:.3f} s"),
     ]
+    if "accuracy" in result:
+        a = result["accuracy"]
+        rows.append(("against --truth", f"SA {a['SA']:.2f} % of {a['static_points']:,} static points kept, DA "
+                                        f"{a['DA']:.2f} % of {a['dynamic_points']:,} dynamic removed, AA {a['AA']:.2f}"))
     written = [p for p in (output, labels, dynamic, png) if p is not None]
     emit(result, as_json, rows, written=written if len(written) > 1 else written[0])

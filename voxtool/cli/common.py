@@ -252,10 +252,11 @@ def source_setup(kw: dict):
     from voxtool.sources import SourceOptions
 
     poses = kw.pop("poses")
-    return SourceOptions(poses=str(poses) if poses else None, no_viewpoint=kw.pop("no_viewpoint"),
-                         topic=kw.pop("topic"), world_frame=kw.pop("world_frame"), pose_topic=kw.pop("pose_topic"),
-                         start=kw.pop("start"), stop=kw.pop("stop"), every=kw.pop("every"), min_range=kw.pop("min_range"),
-                         bad_scans=kw.pop("bad_scans"))
+    options = SourceOptions(poses=str(poses) if poses else None, no_viewpoint=kw.pop("no_viewpoint"),
+                            topic=kw.pop("topic"), world_frame=kw.pop("world_frame"), pose_topic=kw.pop("pose_topic"),
+                            start=kw.pop("start"), stop=kw.pop("stop"), every=kw.pop("every"),
+                            min_range=kw.pop("min_range"), bad_scans=kw.pop("bad_scans"))
+    return with_origin(options, kw.pop("origin", None))  # commands with origin_option among their **kw
 
 
 def scan_setup(kw: dict):

@@ -13,6 +13,7 @@ from voxtool.cli.common import (
     emit,
     emit_fleet,
     handle_errors,
+    origin_option,
     resolve_source,
     scan_options,
     scan_setup,
@@ -31,6 +32,7 @@ from voxtool.cli.common import (
                    "that the logs of two robots fuse as two robots.")
 @backend_options
 @scan_options
+@origin_option
 @click.option("--scheme", type=click.Choice(["hilbert", "nested", "racer", "occupied"]), default=None,
               help="What a packet holds (docs/packets.md).  [default: hilbert; nested with --codec cm]")
 @click.option("--codec", type=click.Choice(["zstd", "zlib", "cm", "none"]), default="zstd", show_default=True,

@@ -7,7 +7,16 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors, int_list, resolve_source, scan_options, scan_setup, threads_option
+from voxtool.cli.common import (
+    emit,
+    handle_errors,
+    int_list,
+    origin_option,
+    resolve_source,
+    scan_options,
+    scan_setup,
+    threads_option,
+)
 
 
 @click.command("eval")
@@ -18,6 +27,7 @@ from voxtool.cli.common import emit, handle_errors, int_list, resolve_source, sc
                    "eval_octree_accuracy does with N = 5. Default: 5, unless --holdout is given.")
 @click.option("--holdout", metavar="I,J,...", help="Hold out these scans (indices from 0) instead.")
 @scan_options
+@origin_option
 @threads_option
 @click.option("--min-correct", type=click.FloatRange(0, 100), metavar="PCT",
               help="For CI: exit 8 when held-out voxels agree with the map less than PCT percent of the time.")
@@ -49,11 +59,14 @@ def eval_cmd(source, sample, holdout_every, holdout, threads, min_correct, png, 
     listed = int_list(holdout) if holdout else None
     every = holdout_every if holdout_every is not None or listed else 5
     options, params, sensor = scan_setup(kw)
-    figures, disagree, map_leaves = evaluate(source, options, params, sensor, every, listed, threads, progress)
+    from voxtool.api import origin_hint
+
+    with origin_hint(options):
+        figures, disagree, map_leaves = evaluate(source, options, params, sensor, every, listed, threads, progress)
     written = None
     if png is not None:
         figures["png"] = _draw(png, disagree, map_leaves, params.resolution, sensor.threshold_log, view, source,
-                               figures["total"])
+                               figures["total"], figures["origin"])
         written = png
     rows = [(f"scan {r['index']}", _counts(r)) for r in figures["per_scan"]]
     rows += [("held out", f"{len(figures['held_out'])} of {figures['scans']} scans (map of the other "
@@ -68,10 +81,11 @@ def _counts(row: dict) -> str:
     return f"correct {row['correct']:,}, wrong {row['wrong']:,}, unknown {row['unknown']:,}: {pct} correct"
 
 
-def _draw(png, disagree, map_leaves, resolution, threshold_log, view, source, total):
+def _draw(png, disagree, map_leaves, resolution, threshold_log, view, source, total, origin):
     """The held-out points' disagreements as voxels over the map. The totals count points, scan by
     scan; the picture shows each voxel once (many points fall in one voxel; a voxel some scan got
     wrong and another found unknown is drawn as wrong), so the legend gives both."""
+    from voxtool.api import local_frame_note
     from voxtool.errors import ParameterError
     from voxtool.io.picture import write_overlay_png
     from voxtool.maps.base import Leaves
@@ -85,4 +99,5 @@ def _draw(png, disagree, map_leaves, resolution, threshold_log, view, source, to
                                         ("wrong", "wrong", wrong, (0.85, 0.10, 0.10)))]
     return write_overlay_png(png, [(map_leaves, threshold_log)], layers, resolution, view,
                              f"held-out scans of {source.name} against the map of the others "
-                             "(points counted scan by scan, voxels once; a voxel wrong in any scan is drawn wrong)")
+                             "(points counted scan by scan, voxels once; a voxel wrong in any scan is drawn wrong)"
+                             + local_frame_note(origin))

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors, source_options, source_setup
+from voxtool.cli.common import emit, handle_errors, origin_option, source_options, source_setup
 
 
 @click.command()
@@ -33,6 +33,7 @@ from voxtool.cli.common import emit, handle_errors, source_options, source_setup
                    "a cell is occupied where any of them is occupied, free where all known ones are free, unknown "
                    "elsewhere (octomap_server's projected_map).")
 @source_options
+@origin_option
 @click.option("--json", "as_json", is_flag=True, help="Print what was written as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
@@ -51,8 +52,12 @@ def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_ran
 
     options = source_setup(kw)  # only a scan source exported as .graph reads them
     if output.suffix.lower() == ".graph":
-        emit(export_scans(map_file, output, options, progress), as_json, [], written=output)
+        written = export_scans(map_file, output, options, progress)
+        emit(written, as_json, [(key.replace("_", " "), value_text(value)) for key, value in written.items()],
+             written=output)
         return
+    if options.origin is not None:
+        raise ParameterError("--origin is for scans exported as .graph: a map keeps the origin it was built about")
 
     box = None
     if crop is not None:

@@ -39,6 +39,8 @@ class EncodeOptions:
     ring: int = 3  # k frames per `occupied` packet
     keyframe_every: int = 0  # also emit a full-state keyframe every n packets (0: never)
     rate_hz: float = 10.0  # scan rate assumed when the source carries no stamps
+    # the scans' position of the map's key-32768 corner: the local origin of a map built with --origin
+    map_origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         # written so that NaN fails too; an infinite interval (packets by count only) is allowed
@@ -184,7 +186,8 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
                     box = (lo, hi - lo + 1)
                     rep.encoded_cells += int(np.prod(box[1]))
                 blob = encode_packet(opts.robot, seq, stamp, opts.scheme, opts.codec, res, keys, pend_states[a:b],
-                                     box=box, frames=list(frames) if opts.scheme == "occupied" else None)
+                                     box=box, map_origin=opts.map_origin,
+                                     frames=list(frames) if opts.scheme == "occupied" else None)
                 rep.time_encode_s += time.perf_counter() - t0
                 log.write(opts.robot, seq, stamp, blob)
                 rep.packets += 1
@@ -267,4 +270,4 @@ def keyframe_blob(backend: MapBackend, opts: EncodeOptions, seq: int, stamp: int
     codes = expand_leaves(lv.codes, lv.depths)
     values = np.repeat(lv.values, np.left_shift(1, 3 * (16 - lv.depths.astype(np.int64))))
     return keyframe_packet(opts.robot, seq, stamp, opts.scheme, opts.codec, backend.params.resolution, codes,
-                           voxel_states(values, backend.sensor.threshold_log))
+                           voxel_states(values, backend.sensor.threshold_log), opts.map_origin)

@@ -64,6 +64,7 @@ class FusionResult:
     packets: int = 0
     robots: dict = field(default_factory=dict)  # robot -> {packets, gaps, first/last stamp}
     meta: dict = field(default_factory=dict)
+    origin: tuple = (0.0, 0.0, 0.0)  # the packets' map_origin: where key 32768's corner sits in the scans' frame
 
 
 def _log_packets(path: Path):
@@ -107,7 +108,7 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
     packets = track(packets, total, "fuse", progress, "packet")
     codes_parts, rank_parts, state_parts = [], [], []
     robots: dict[str, dict] = {}
-    resolution = first_from = None
+    resolution = first_from = origin = None
     rank = 0
     seen: dict[str, dict] = {}  # robot -> (seq, kind) -> the log it came from
     for path, p in packets:
@@ -117,6 +118,12 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
         elif p.resolution != resolution:
             raise FormatError(f"{where}packet {p.seq} of robot '{p.robot}' has resolution {p.resolution} m, but "
                               f"{first_from or 'the first packet'} has {resolution} m: fuse maps of one resolution")
+        if origin is None:
+            origin = tuple(p.map_origin)
+        elif tuple(p.map_origin) != origin:
+            raise FormatError(f"{where}packet {p.seq} of robot '{p.robot}' has map origin {list(p.map_origin)}, but "
+                              f"{first_from or 'the first packet'} has {list(origin)}: encode every robot's scans about "
+                              "one --origin X,Y,Z")
         info = robots.setdefault(p.robot, {"packets": 0, "first_stamp_ns": p.stamp_ns, "seqs": set()})
         seen_ids = seen.setdefault(p.robot, {})
         info["packets"] += 1
@@ -146,7 +153,8 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
         missing = sorted(set(range(seqs[0], seqs[-1] + 1)) - set(seqs)) if seqs else []
         info["gaps"] = missing
     if not codes_parts:
-        return FusionResult(np.zeros(0, np.int64), np.zeros(0, np.uint8), resolution or 0.0, 0, robots)
+        return FusionResult(np.zeros(0, np.int64), np.zeros(0, np.uint8), resolution or 0.0, 0, robots,
+                            origin=origin or (0.0, 0.0, 0.0))
     codes = np.concatenate(codes_parts)
     states = np.concatenate(state_parts)
     ranks = np.concatenate(rank_parts)
@@ -156,7 +164,7 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
     last[:-1] = codes[1:] != codes[:-1]
     codes, states = codes[last], states[last]
     known = states != UNKNOWN
-    return FusionResult(codes[known], states[known], resolution, rank, robots)
+    return FusionResult(codes[known], states[known], resolution, rank, robots, origin=origin)
 
 
 DAY_NS = 86_400 * 10**9
@@ -196,7 +204,7 @@ def save_state_map(path, result: FusionResult, info: dict) -> None:
     m = OctreeMap(MapParams(resolution=result.resolution or 0.1), sensor)
     leaves = fused_leaves(result, sensor)
     m.load_state({"leaf_codes": leaves.codes, "leaf_depths": leaves.depths, "leaf_values": leaves.values})
-    save_map(path, m, info)
+    save_map(path, m, {**info, "origin": [float(v) for v in result.origin]})
 
 
 def packets_of(path: Path) -> list[Packet]:

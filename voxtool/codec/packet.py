@@ -229,7 +229,7 @@ def _assemble(robot, seq, stamp_ns, scheme, codec, kind, resolution, map_origin,
 
 
 def keyframe_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, resolution: float,
-                    codes: np.ndarray, states: np.ndarray) -> bytes:
+                    codes: np.ndarray, states: np.ndarray, map_origin=(0.0, 0.0, 0.0)) -> bytes:
     """Full-state keyframe of known voxels (Morton codes, FREE/OCCUPIED states): every cell of
     their bounding box, unknown where no voxel is given, no 'unchanged'."""
     keys = morton_decode(codes).astype(np.int64)
@@ -242,7 +242,7 @@ def keyframe_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str
     rel = keys - lo
     grid[rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])] = states
     return encode_packet(robot, seq, stamp_ns, scheme, codec, resolution, keys[:0], grid, kind=KIND_KEYFRAME,
-                         box=(lo, dims))
+                         box=(lo, dims), map_origin=map_origin)
 
 
 def decode_packet(blob: bytes, where: str = "packet") -> Packet:

@@ -35,6 +35,11 @@ class SourceOptions:
     # the map's local origin in the source's frame (subtracted from every point and sensor origin
     # in float64, before the float32 rounding); "auto": resolve_origin() picks one
     origin: tuple[float, float, float] | str | None = None
+    # a folder of per-scan ground-truth labels (SemanticKITTI NNNNNN.label beside each scan file's
+    # number or name): each scan carries its points' dynamic flags as extra["truth"] (clean --truth)
+    truth: str | None = None
+    # the points in the sensor's own frame, every pose the identity: what odometry registers
+    sensor_frame: bool = False
 
     def __post_init__(self) -> None:
         if self.bad_scans not in BAD_SCAN_POLICIES:
@@ -101,12 +106,18 @@ def _numeric_key(path: Path) -> tuple:
 
 
 def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source: str, raw_bytes: int,
-              options: SourceOptions, world_frame_points: bool = False, misses: tuple | None = None) -> Scan:
+              options: SourceOptions, world_frame_points: bool = False, misses: tuple | None = None,
+              per_point: dict | None = None) -> Scan:
     """Drop non-finite points, move sensor-frame points to the world (about the local origin,
     if any), drop those below min range. misses: (sensor-frame no-return beams, their range),
-    whose NaN places in `points` are not counted as dropped (ros_msgs.decode_laserscan)."""
+    whose NaN places in `points` are not counted as dropped (ros_msgs.decode_laserscan).
+    per_point: arrays of one value per point (ground-truth labels), kept for the same points
+    and put in the scan's `extra`."""
+    if options.sensor_frame:
+        pose = Pose.identity()
     finite = np.isfinite(points).all(axis=1)
     kept = points[finite]
+    extra = {name: values[finite] for name, values in (per_point or {}).items()}
     if options.origin is not None:
         if isinstance(options.origin, str):
             raise ParameterError(f"--origin {options.origin} was not resolved (resolve_origin) before reading {source}")
@@ -124,6 +135,7 @@ def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source:
         near = d < options.min_range
         dropped_min = int(near.sum())
         world = world[~near]
+        extra = {name: values[~near] for name, values in extra.items()}
     else:
         dropped_min = 0
     return Scan(
@@ -138,6 +150,7 @@ def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source:
         raw_bytes=raw_bytes,
         misses=None if miss_points is None else np.ascontiguousarray(miss_points, dtype=np.float32),
         miss_range=float(miss_range),
+        extra=extra,
     )
 
 
@@ -186,10 +199,11 @@ def _open_cloud_files(path: Path, options: SourceOptions, suffix: str) -> ScanSt
     rows = _pose_rows(options, len(files))
     # without --poses, a PCD directory's poses come from VIEWPOINT and its times from poses.txt
     times = _times_beside(path, len(files)) if rows is None and suffix == ".pcd" and path.is_dir() else None
-    if suffix == ".ply" and rows is None:
-        raise SourceError(f"{path}: PLY scans need a pose file (--poses)")
+    if suffix == ".ply" and rows is None and not options.sensor_frame:
+        raise SourceError(f"{path}: PLY scans need a pose file (--poses); `voxtool odometry` estimates one")
 
     bad = BadScans(options.bad_scans)
+    unposed: list[int] = []  # scans with neither a VIEWPOINT nor a pose row: one warning for them all
 
     def read(i: int, f: Path) -> Scan:
         from voxtool.sources.pcd import read_pcd
@@ -201,6 +215,9 @@ def _open_cloud_files(path: Path, options: SourceOptions, suffix: str) -> ScanSt
             points = cloud.xyz
             vp = cloud.viewpoint
             pose = Pose.from_quat(vp[:3], vp[3], vp[4], vp[5], vp[6])
+            # no VIEWPOINT, or PCL's default one (the identity): what a driver's dump holds
+            if pose.is_identity() and rows is None and not options.sensor_frame and not options.no_viewpoint:
+                unposed.append(i)
         else:
             points = read_ply(f)
             pose = Pose.identity()
@@ -211,7 +228,63 @@ def _open_cloud_files(path: Path, options: SourceOptions, suffix: str) -> ScanSt
             stamp = int(round(times[i] * 1e9))
         if options.no_viewpoint:
             pose = Pose(np.eye(3), pose.translation)
-        return make_scan(points, pose, i, stamp, str(f), f.stat().st_size, options, options.no_viewpoint)
+        return make_scan(points, pose, i, stamp, str(f), f.stat().st_size, options, options.no_viewpoint,
+                         per_point=truth_of(f, points.shape[0], options))
+
+    def scans() -> Iterator[Scan]:
+        read_count = 0
+        for i, f in islice(enumerate(files), options.start, options.stop, options.every):
+            try:
+                scan = read(i, f)
+            except SourceError as err:
+                bad(i, err)
+                continue
+            read_count += 1
+            yield scan
+        if len(unposed) > 1 and len(unposed) == read_count:  # all at the origin: a static sensor, or a dump without poses
+            import warnings
+
+            from voxtool.errors import VoxtoolWarning
+
+            warnings.warn(f"{path}: none of its {len(unposed)} scans has a pose (no VIEWPOINT, or the identity, and no "
+                          "--poses): all were taken as seen from the origin, as a static sensor's; for a moving "
+                          "one, `voxtool odometry` estimates poses", VoxtoolWarning, stacklevel=2)
+
+    return ScanStream(suffix.lstrip("."), path, _selected(path, len(files), options), scans(), bad)
+
+
+def truth_of(scan_file: Path, points: int, options: SourceOptions) -> dict | None:
+    """The scan's ground-truth dynamic flags (--truth DIR: the .label of the scan file's name)."""
+    if options.truth is None:
+        return None
+    from voxtool.sources.kitti import read_truth
+
+    return {"truth": read_truth(Path(options.truth) / f"{scan_file.stem}.label", points)}
+
+
+def _open_kitti(path: Path, options: SourceOptions) -> ScanStream:
+    """A KITTI / SemanticKITTI sequence (voxtool/sources/kitti.py): LiDAR poses from its camera
+    poses and calib.txt's Tr, or --poses (LiDAR poses, one row per scan file)."""
+    from voxtool.sources import kitti
+
+    sequence = kitti.sequence_dir(path)
+    files = kitti.scan_files(sequence)
+    frames = [int(f.stem) for f in files]
+    rows = _pose_rows(options, len(files))
+    poses = None if rows is not None or options.sensor_frame else kitti.lidar_poses(sequence, frames)
+    times = kitti.frame_times(sequence, frames)
+    bad = BadScans(options.bad_scans)
+
+    def read(i: int, f: Path) -> Scan:
+        points = kitti.read_bin(f)
+        stamp = times[i] if times is not None else 0
+        if rows is not None:
+            stamp_s, pose = rows[i]
+            stamp = int(round(stamp_s * 1e9)) if stamp_s is not None else stamp
+        else:
+            pose = Pose.identity() if poses is None else poses[i]
+        return make_scan(points, pose, i, stamp, str(f), f.stat().st_size, options,
+                         per_point=truth_of(f, points.shape[0], options))
 
     def scans() -> Iterator[Scan]:
         for i, f in islice(enumerate(files), options.start, options.stop, options.every):
@@ -222,7 +295,7 @@ def _open_cloud_files(path: Path, options: SourceOptions, suffix: str) -> ScanSt
                 continue
             yield scan
 
-    return ScanStream(suffix.lstrip("."), path, _selected(path, len(files), options), scans(), bad)
+    return ScanStream("kitti", sequence, _selected(sequence, len(files), options), scans(), bad)
 
 
 def _open_pcd(path: Path, options: SourceOptions) -> ScanStream:
@@ -290,6 +363,7 @@ SOURCES: dict[str, Callable[[Path, SourceOptions], ScanStream]] = {
     "graph": _open_graph,
     "bag": _open_bag,
     "db3": _open_bag,
+    "kitti": _open_kitti,
 }
 BAG_DIRECTORY = "metadata.yaml"  # what makes a directory a ROS 2 bag
 
@@ -320,7 +394,8 @@ def _scan_folders(path: Path, depth: int = 2) -> list[str]:
     """Sub-folders of `path` (down to `depth` levels) that hold scans or are ROS 2 bags."""
     found = []
     for sub in sorted(p for p in path.iterdir() if p.is_dir()):
-        if (sub / BAG_DIRECTORY).is_file() or any(p.suffix.lower() in (".pcd", ".ply") for p in sub.iterdir()):
+        if (sub / BAG_DIRECTORY).is_file() or any(p.suffix.lower() in (".pcd", ".ply") for p in sub.iterdir()) \
+                or (sub / "velodyne").is_dir():
             found.append(str(sub.relative_to(path)))
         elif depth > 1:
             found += [str(Path(sub.name) / f) for f in _scan_folders(sub, depth - 1)]
@@ -331,6 +406,10 @@ def detect_kind(path: Path) -> str:
     if path.is_dir():
         if (path / BAG_DIRECTORY).is_file():
             return "bag"
+        from voxtool.sources.kitti import sequence_dir
+
+        if sequence_dir(path) is not None:
+            return "kitti"
         kinds = {p.suffix.lower() for p in path.iterdir() if p.suffix.lower() in (".pcd", ".ply")}
         if len(kinds) != 1:
             folders = _scan_folders(path) if not kinds else []
@@ -338,7 +417,7 @@ def detect_kind(path: Path) -> str:
                 shown = ", ".join(folders[:8]) + (f" and {len(folders) - 8} more" if len(folders) > 8 else "")
                 raise SourceError(f"{path}: holds no scans itself, but its sub-folders do: {shown} (give one of them, "
                                   "or several with -o DIRECTORY for one map each)")
-            raise SourceError(f"{path}: directory must hold .pcd or .ply scans, or be a ROS 2 bag ({BAG_DIRECTORY}) "
+            raise SourceError(f"{path}: directory must hold .pcd or .ply scans, be a ROS 2 bag ({BAG_DIRECTORY}) or a KITTI sequence (velodyne/*.bin) "
                               f"(found {sorted(kinds) or 'neither'})")
         return kinds.pop().lstrip(".")
     if path.suffix.lower() == ".mcap" and (path.parent / BAG_DIRECTORY).is_file():

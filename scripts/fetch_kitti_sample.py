@@ -1,0 +1,54 @@
+"""Lay out the SemanticKITTI sample the KITTI tests use in .fetched/mini_kitti (ignored by git).
+
+Source: the public repository rancheng/mini_kitti_dataset (commit 2a361538a576d0c675b537ee3bffecda85905609):
+the first 10 frames of each KITTI odometry sequence 00-10 with SemanticKITTI labels, poses.txt and
+times.txt. KITTI: CC BY-NC-SA 3.0; SemanticKITTI labels: CC BY-NC-SA 4.0. Neither goes into voxtool's git.
+
+Its calib.txt files lack the Tr line (LiDAR to camera 0) that the poses need. KITTI's odometry calibration
+gives one Tr per recording day; this script appends it, as the odometry calibration download's calib.txt
+holds it (values as quoted in public KITTI tooling): sequences 00-02 (2011_10_03) and 04-10 (2011_09_30).
+
+    python scripts/fetch_kitti_sample.py GIT_DIR   # a clone or mirror of rancheng/mini_kitti_dataset
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+COMMIT = "2a361538a576d0c675b537ee3bffecda85905609"
+SEQUENCES = ("00", "05")
+TR = {
+    "2011_10_03": "4.276802385584e-04 -9.999672484946e-01 -8.084491683471e-03 -1.198459927713e-02 "
+                  "-7.210626507497e-03 8.081198471645e-03 -9.999413164504e-01 -5.403984729748e-02 "
+                  "9.999738645903e-01 4.859485810390e-04 -7.206933692422e-03 -2.921968648686e-01",
+    "2011_09_30": "-1.857739385241e-03 -9.999659513510e-01 -8.039975204516e-03 -4.784029760483e-03 "
+                  "-6.481465826011e-03 8.051860151134e-03 -9.999466081774e-01 -7.337429464231e-02 "
+                  "9.999773098287e-01 -1.805528627661e-03 -6.496203536139e-03 -3.339968064433e-01",
+}
+DAY = {"00": "2011_10_03", "01": "2011_10_03", "02": "2011_10_03", **{f"{n:02d}": "2011_09_30" for n in range(4, 11)}}
+DST = Path(__file__).resolve().parents[1] / ".fetched" / "mini_kitti"
+
+
+def main(git_dir: str) -> None:
+    def git(*args: str) -> bytes:
+        return subprocess.run(["git", "--git-dir", git_dir, *args], check=True, capture_output=True).stdout
+
+    for seq in SEQUENCES:
+        names = git("ls-tree", "-r", "--name-only", COMMIT, f"dataset/sequences/{seq}").decode().split()
+        for name in names:
+            if "/image_" in name or "/voxels/" in name:
+                continue
+            out = DST / name.removeprefix("dataset/")
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_bytes(git("show", f"{COMMIT}:{name}"))
+        calib = DST / "sequences" / seq / "calib.txt"
+        if "Tr:" not in calib.read_text():
+            calib.write_text(calib.read_text().rstrip("\n") + f"\nTr: {TR[DAY[seq]]}\n")
+    (DST / "PROVENANCE.md").write_text(__doc__)
+    print(f"{DST}: sequences {', '.join(SEQUENCES)}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])

@@ -1,0 +1,58 @@
+"""`voxtool odometry`: a pose file for scans that have no poses (KISS-ICP LiDAR odometry)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from voxtool.cli.common import emit, handle_errors, resolve_source
+
+
+@click.command("odometry")
+@click.argument("source", required=False, type=click.Path(path_type=Path))
+@click.option("--sample", is_flag=True, help="Use the small real sample shipped with voxtool as SOURCE.")
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path), metavar="POSES.txt",
+              help="The pose file to write (atomically): TUM rows where the scans have times, KITTI rows otherwise.")
+@click.option("--max-range", default=100.0, show_default=True, type=float,
+              help="Points farther than this (metres) are not registered (KISS-ICP's max_range).")
+@click.option("--min-range", default=0.0, show_default=True, type=float,
+              help="Points nearer than this (metres: the vehicle itself) are not registered.")
+@click.option("--voxel-size", default=None, type=float,
+              help="KISS-ICP's local map voxel in metres (default: max range / 100, its own default).")
+@click.option("--topic", help="MCAP/bag PointCloud2 topic (default: the only one).")
+@click.option("--bad-scans", type=click.Choice(["fail", "skip"]), default="fail", show_default=True,
+              help="skip: read a truncated bag record by record (every scan file must still be readable).")
+@click.option("--json", "as_json", is_flag=True, help="Print figures and timings as JSON on stdout.")
+@click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
+@handle_errors
+def odometry(source, sample, output, max_range, min_range, voxel_size, topic, bad_scans, as_json, progress):
+    """Estimate the sensor's pose for every scan of SOURCE by LiDAR odometry (KISS-ICP), and write
+    them as a pose file that `build`, `clean` and `eval` take with --poses.
+
+    For scans that carry no poses: a driver's PCD dump, a dataset sample, a KITTI sequence without
+    poses.txt. The poses are in the first scan's sensor frame. Odometry drifts (about 1 % of the
+    distance on KITTI); a map from it is locally consistent, not surveyed. Needs the optional
+    extra: pip install 'voxtool[odometry]'.
+
+    \b
+    Examples:
+      voxtool odometry scans/ -o poses.txt && voxtool build scans/ --poses poses.txt -o map.vxm
+      voxtool odometry sequences/00 -o odom.txt --max-range 80 --json"""
+    from voxtool.odometry import OdometryParams, estimate_poses, write_pose_file
+    from voxtool.sources import SourceOptions
+
+    source = resolve_source(source, sample)
+    from voxtool.atomic import check_writable
+
+    check_writable(output)
+    params = OdometryParams(max_range=max_range, min_range=min_range, voxel_size=voxel_size)
+    result = estimate_poses(source, SourceOptions(topic=topic, bad_scans=bad_scans), params, progress)
+    kind = write_pose_file(output, result["poses"], result["stamps_ns"])
+    figures = {**result["figures"], "format": kind}
+    t = figures["timings_s"]
+    rows = [("scans", f"{figures['scans']:,} ({figures['points']:,} points)"),
+            ("path", f"{figures['path_m']:.2f} m travelled (first scan's frame)"),
+            ("format", "TUM (t x y z qx qy qz qw)" if kind == "tum" else "KITTI rows (the scans have no times)"),
+            ("time", f"{t['total']:.2f} s, {t['per_scan_ms']:.1f} ms a scan")]
+    emit(figures, as_json, rows, written=output)
