@@ -301,3 +301,27 @@ def test_the_docs_way_to_write_a_ros1_bag_builds(tmp_path, monkeypatch):
     assert report["scans"] == 1 and report["points"] == 1000
     lo, hi = report["occupied_bbox"]["min"], report["occupied_bbox"]["max"]
     assert lo[0] < -3.5 and hi[0] > 5.5  # the points, -5..5, moved 1 m along x
+
+
+@pytest.mark.parametrize("keep", [0.3, 0.6])
+def test_a_truncated_mcap_builds_the_scans_before_the_cut_with_skip(tmp_path, shared_data, keep):
+    """A real MCAP recording (kaist03, 21 Ouster scans) cut short: without --bad-scans skip one
+    line naming it and `mcap recover`; with it, read from its start, the map equals the map of the
+    original's first N scans (N: the whole scans before the cut) and one warning says how many
+    bytes were lost."""
+    original = shared_data / "kaist03" / "kaist03_21scans.mcap"
+    cut = tmp_path / "cut.mcap"
+    data = original.read_bytes()
+    cut.write_bytes(data[: int(len(data) * keep)])
+    code, _, err, out = _build(tmp_path, cut)
+    assert code == 3 and "--bad-scans skip" in _one_error_line(err) and "mcap recover" in err and not out.exists()
+    report, cut_map, err = _map_of(tmp_path, cut, "--bad-scans", "skip")
+    lost = [ln for ln in err.splitlines() if "could not be read" in ln]
+    assert len(lost) == 1 and f"of its {len(data[: int(len(data) * keep)]):,} bytes" in lost[0], err
+    n = report["scans"]
+    assert 0 < n < 21
+    (tmp_path / "whole").mkdir()
+    whole, whole_map, _ = _map_of(tmp_path / "whole", original, "--stop", n)
+    assert whole["scans"] == n
+    a, b = cut_map.leaves(), whole_map.leaves()
+    assert np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)

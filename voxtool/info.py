@@ -160,15 +160,17 @@ def _describe_bag(path: Path, options: SourceOptions) -> dict:
 def _describe_mcap(path: Path, options: SourceOptions) -> dict:
     from voxtool.sources.mcap_ros2 import McapCloudSource
 
-    src = McapCloudSource(path, options.topic, options.world_frame, options.pose_topic)
-    summary = src._reader.get_summary()
-    counts = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
-    topics = [{"topic": c.topic, "type": summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "",
-               "messages": counts.get(cid)} for cid, c in sorted(summary.channels.items(), key=lambda kv: kv[1].topic)]
+    src = McapCloudSource(path, options.topic, options.world_frame, options.pose_topic,
+                          recover=options.bad_scans == "skip")
+    topics = src.topic_table()
     try:
         src._load_poses()
         problem = None
     except SourceError as err:
         problem = str(err)
-    messages = (msg for *_, msg in src._reader.iter_decoded_messages(topics=[src.topic], log_time_order=True))
-    return _log_figures("mcap", path, topics, src.topic, src._msgtype, messages, src._poses, problem)
+    extra = {} if src._linear is None else {"decoder_factory": src._decoders}
+    messages = (msg for *_, msg in src._reader.iter_decoded_messages(topics=[src.topic], log_time_order=True, **extra))
+    out = _log_figures("mcap", path, topics, src.topic, src._msgtype, messages, src._poses, problem)
+    if src.lost():
+        out["lost"] = src.lost()
+    return out

@@ -309,8 +309,9 @@ def _open_ply(path: Path, options: SourceOptions) -> ScanStream:
 def _open_mcap(path: Path, options: SourceOptions) -> ScanStream:
     from voxtool.sources.mcap_ros2 import McapCloudSource
 
-    return _log_stream("mcap", path, McapCloudSource(path, options.topic, options.world_frame, options.pose_topic),
-                       options)
+    src = McapCloudSource(path, options.topic, options.world_frame, options.pose_topic,
+                          recover=options.bad_scans == "skip")
+    return _log_stream("mcap", path, src, options)
 
 
 def _open_bag(path: Path, options: SourceOptions) -> ScanStream:

@@ -31,12 +31,15 @@ _POSES: dict[tuple, SensorPoses] = {}  # the last files' poses (insertion order:
 class McapCloudSource:
     """Streams (sensor points, pose, stamp, raw bytes) from a ROS 2 MCAP file."""
 
-    def __init__(self, path: str | Path, topic: str | None, world_frame: str | None, pose_topic: str | None) -> None:
+    def __init__(self, path: str | Path, topic: str | None, world_frame: str | None, pose_topic: str | None,
+                 recover: bool = False) -> None:
         from mcap.reader import make_reader
 
         self.path = Path(path)
         self.world_frame = world_frame
         self.pose_topic = pose_topic
+        self._linear = None  # a file read from its start (mcap_linear), where its summary cannot be
+        problem = None
         try:
             self._handle = open(self.path, "rb")
             self._decoders = _decoder_factory()
@@ -45,17 +48,28 @@ class McapCloudSource:
         except OSError as err:
             raise SourceError(f"{self.path}: cannot read: {err.strerror}") from err
         except _decode_errors() as err:
-            raise SourceError(f"{self.path}: cannot be read as MCAP: {mcap_problem(err)}") from err
+            summary, problem = None, f"cannot be read as MCAP: {mcap_problem(err)}"
+        if summary is None and not recover:
+            problem = problem or "MCAP has no summary section (cut short, or not closed by its recorder)"
+            raise SourceError(f"{self.path}: {problem}; --bad-scans skip reads the messages it holds from its start "
+                              "(`mcap recover` rewrites it whole)")
         if summary is None:
-            raise SourceError(f"{self.path}: MCAP has no summary section (truncated or not finished)")
-        from voxtool.compression import check_mcap_chunks
+            from voxtool.sources.mcap_linear import LinearMcap
 
-        try:
-            check_mcap_chunks(self._handle, summary, str(self.path))
-        except FormatError as err:
-            raise SourceError(str(err)) from err
-        topics = {c.topic: summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "" for c in summary.channels.values()}
-        counts = {summary.channels[cid].topic: n for cid, n in (summary.statistics.channel_message_counts.items() if summary.statistics else [])}
+            self._linear = LinearMcap(self.path)
+            self._reader = self._linear
+            topics, counts = self._linear.topics(), self._linear.topic_counts()
+        else:
+            from voxtool.compression import check_mcap_chunks
+
+            try:
+                check_mcap_chunks(self._handle, summary, str(self.path))
+            except FormatError as err:
+                raise SourceError(str(err)) from err
+            topics = {c.topic: summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else ""
+                      for c in summary.channels.values()}
+            counts = {summary.channels[cid].topic: n for cid, n in
+                      (summary.statistics.channel_message_counts.items() if summary.statistics else [])}
         topic = scan_topic(str(self.path), topics, topic)
         self.topic = topic
         self.count = counts.get(topic)
@@ -81,11 +95,14 @@ class McapCloudSource:
     def _read_poses(self) -> SensorPoses:
         poses = SensorPoses(str(self.path), self.world_frame, self.pose_topic, self._topics)
         try:
+            extra = {} if self._linear is None else {"decoder_factory": self._decoders}
             if self.pose_topic is not None:
-                for _, _, _, msg in self._reader.iter_decoded_messages(topics=[self.pose_topic], log_time_order=True):
+                for _, _, _, msg in self._reader.iter_decoded_messages(topics=[self.pose_topic], log_time_order=True,
+                                                                       **extra):
                     poses.add_pose(msg)
             elif self._tf_topics:  # (no topics would mean every topic to the mcap reader)
-                for _, channel, _, msg in self._reader.iter_decoded_messages(topics=self._tf_topics, log_time_order=True):
+                for _, channel, _, msg in self._reader.iter_decoded_messages(topics=self._tf_topics,
+                                                                             log_time_order=True, **extra):
                     poses.add_transforms(msg, channel.topic == "/tf_static")
         except _decode_errors() as err:
             raise SourceError(f"{self.path}: cannot read its poses: {mcap_problem(err)}") from err
@@ -100,6 +117,8 @@ class McapCloudSource:
         from mcap.data_stream import ReadDataStream
         from mcap.records import MessageIndex
 
+        if self._linear is not None:
+            return None  # no index: messages are read from the start
         summary = self._reader.get_summary()
         channel = next(cid for cid, c in summary.channels.items() if c.topic == self.topic)
         times: list[int] = []
@@ -144,6 +163,22 @@ class McapCloudSource:
 
         yield from scan_messages(messages, decode, self._poses, str(self.path), self.topic, self._msgtype,
                                  _decode_errors(), mcap_problem, start, stop, every, on_bad, index)
+
+
+    def topic_table(self) -> list[dict]:
+        """Every topic with its type and message count (None where the file does not say), by name."""
+        if self._linear is not None:
+            counts = self._linear.topic_counts()
+            return [{"topic": t, "type": kind, "messages": counts.get(t, 0)}
+                    for t, kind in sorted(self._linear.topics().items())]
+        summary = self._reader.get_summary()
+        counts = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
+        return [{"topic": c.topic, "type": summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "",
+                 "messages": counts.get(cid)} for cid, c in sorted(summary.channels.items(), key=lambda kv: kv[1].topic)]
+
+    def lost(self) -> str:
+        """How much of the file could not be read (empty: all of it, or it was read through its index)."""
+        return "" if self._linear is None else self._linear.lost()
 
 
 def _decoder_factory():
