@@ -30,11 +30,20 @@ FETCHED = Path(__file__).resolve().parents[1] / ".fetched"
 
 @pytest.fixture(scope="session")
 def kitti_sample() -> Path:
-    """SemanticKITTI frames 0-9 of sequences 00 and 05 (scripts/fetch_kitti_sample.py lays them out
+    """SemanticKITTI frames 0-9 of sequences 00 and 05 (scripts/fetch_samples.py lays them out
     from a public repository; not in git: KITTI's licence is non-commercial)."""
     root = FETCHED / "mini_kitti" / "sequences"
     if not (root / "00" / "velodyne").is_dir():
-        pytest.skip("the KITTI sample is absent (python scripts/fetch_kitti_sample.py GIT_DIR)")
+        pytest.skip("the KITTI sample is absent (python scripts/fetch_samples.py kitti GIT_DIR)")
+    return root
+
+
+@pytest.fixture(scope="session")
+def udacity_dump() -> Path:
+    """22 real PCD scans from a driving car with no poses (scripts/fetch_samples.py udacity)."""
+    root = FETCHED / "udacity_data_1"
+    if not any(root.glob("*.pcd")):
+        pytest.skip("the udacity sample is absent (python scripts/fetch_samples.py udacity GIT_DIR)")
     return root
 
 

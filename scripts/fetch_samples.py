@@ -1,6 +1,6 @@
-"""Lay out the SemanticKITTI sample the KITTI tests use in .fetched/mini_kitti (ignored by git).
+"""Lay out the real samples some tests use in .fetched/ (ignored by git; the tests skip without them).
 
-Source: the public repository rancheng/mini_kitti_dataset (commit 2a361538a576d0c675b537ee3bffecda85905609):
+kitti: .fetched/mini_kitti. Source: the public repository rancheng/mini_kitti_dataset (commit 2a361538a576d0c675b537ee3bffecda85905609):
 the first 10 frames of each KITTI odometry sequence 00-10 with SemanticKITTI labels, poses.txt and
 times.txt. KITTI: CC BY-NC-SA 3.0; SemanticKITTI labels: CC BY-NC-SA 4.0. Neither goes into voxtool's git.
 
@@ -8,7 +8,13 @@ Its calib.txt files lack the Tr line (LiDAR to camera 0) that the poses need. KI
 gives one Tr per recording day; this script appends it, as the odometry calibration download's calib.txt
 holds it (values as quoted in public KITTI tooling): sequences 00-02 (2011_10_03) and 04-10 (2011_09_30).
 
-    python scripts/fetch_kitti_sample.py GIT_DIR   # a clone or mirror of rancheng/mini_kitti_dataset
+udacity: .fetched/udacity_data_1, 22 PCD scans (about 120 k points each) from a driving car, with PCL's
+identity VIEWPOINT and no poses: a driver's dump as users have them. Source:
+the public repository udacity/SFND_Lidar_Obstacle_Detection (commit
+ef15da2bc172359e7d6edfdd156a2a243d10977e), src/sensors/data/pcd/data_1.
+
+    python scripts/fetch_samples.py kitti GIT_DIR     # a clone or mirror of rancheng/mini_kitti_dataset
+    python scripts/fetch_samples.py udacity GIT_DIR   # a clone or mirror of udacity/SFND_Lidar_Obstacle_Detection
 """
 
 from __future__ import annotations
@@ -28,12 +34,29 @@ TR = {
                   "9.999773098287e-01 -1.805528627661e-03 -6.496203536139e-03 -3.339968064433e-01",
 }
 DAY = {"00": "2011_10_03", "01": "2011_10_03", "02": "2011_10_03", **{f"{n:02d}": "2011_09_30" for n in range(4, 11)}}
-DST = Path(__file__).resolve().parents[1] / ".fetched" / "mini_kitti"
+FETCHED = Path(__file__).resolve().parents[1] / ".fetched"
+DST = FETCHED / "mini_kitti"
+UDACITY_COMMIT = "ef15da2bc172359e7d6edfdd156a2a243d10977e"
 
 
-def main(git_dir: str) -> None:
+def _git(git_dir: str):
     def git(*args: str) -> bytes:
-        return subprocess.run(["git", "--git-dir", git_dir, *args], check=True, capture_output=True).stdout
+        return subprocess.run(["git", "-C", git_dir, *args], check=True, capture_output=True).stdout
+    return git
+
+
+def udacity(git_dir: str) -> None:
+    git = _git(git_dir)
+    out = FETCHED / "udacity_data_1"
+    out.mkdir(parents=True, exist_ok=True)
+    names = git("ls-tree", "-r", "--name-only", UDACITY_COMMIT, "src/sensors/data/pcd/data_1").decode().split()
+    for name in names:
+        (out / Path(name).name).write_bytes(git("show", f"{UDACITY_COMMIT}:{name}"))
+    print(f"{out}: {len(names)} scans")
+
+
+def kitti(git_dir: str) -> None:
+    git = _git(git_dir)
 
     for seq in SEQUENCES:
         names = git("ls-tree", "-r", "--name-only", COMMIT, f"dataset/sequences/{seq}").decode().split()
@@ -51,4 +74,4 @@ def main(git_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    {"kitti": kitti, "udacity": udacity}[sys.argv[1]](sys.argv[2])
