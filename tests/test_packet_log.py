@@ -152,3 +152,49 @@ def test_logs_encoded_without_robot_are_named_after_their_files(tmp_path):
                    "--max-range", 20, "--no-progress")[0] == 0
     code, _, err = cli("merge", tmp_path / "a.mcap", tmp_path / "b.mcap", "-o", tmp_path / "f2.vxm", "--no-progress")
     assert code == 2 and "encode each with its own --robot" in err, err
+
+
+@pytest.mark.parametrize("scheme, codec", [("hilbert", "zstd"), ("nested", "cm"), ("racer", "zstd"),
+                                           ("occupied", "zstd")])
+def test_stats_from_the_headers_equal_the_decoded_packets(tmp_path, scheme, codec):
+    """`stats` reads packet headers, not payloads: its counts equal those of every packet decoded
+    here, the RACER comparison is the brute-force sum of RACER's sizes, and a log of the old
+    layout (the packet as the whole message) gives the same figures."""
+    import json
+
+    import numpy as np
+
+    from voxtool.codec.fusion import packets_of
+    from voxtool.codec.packet import address_width
+
+    log = tmp_path / f"{scheme}.mcap"
+    code, _, err = cli("encode", "--sample", "-o", log, "--scheme", scheme, "--codec", codec, "--max-range", "20",
+                       "--robot", "r1", "--no-progress")
+    assert code == 0, err
+    code, text, err = cli("stats", log, "--json")
+    assert code == 0, err
+    got = json.loads(text)["robots"]["r1"]
+    packets = packets_of(log)
+    deltas = [p for p in packets if p.kind == 0]
+    assert got["packets"] == len(packets) and got["bytes"] == sum(p.wire_bytes for p in packets)
+    assert got["changed_voxels"] == sum(int(p.keys.shape[0]) for p in deltas) > 1000
+    assert got["raw_payload_bytes"] == sum(p.raw_size for p in packets)
+    racer = sum(96 + len(p.keys) * address_width((int(np.prod(p.box_dims)), 1, 1)) + (len(p.keys) + 3) // 4
+                for p in deltas)
+    assert got["vs_racer"] == pytest.approx(racer / got["bytes"], abs=1e-3)
+
+    from mcap.writer import CompressionType, Writer
+
+    old = tmp_path / "old.mcap"
+    _, messages = read_log(log)
+    with open(old, "wb") as f:  # the first layout: the packet is the whole message
+        writer = Writer(f, compression=CompressionType.NONE)
+        writer.start(profile="", library="voxtool")
+        schema = writer.register_schema(LEGACY_SCHEMA, "voxtool-packet-v1", b"see formats/packet.md")
+        channel = writer.register_channel("/voxtool/packets/r1", "voxtool-packet-v1", schema, {"robot": "r1"})
+        for seq, (_, stamp, blob) in enumerate(messages):
+            writer.add_message(channel, stamp, blob, stamp, sequence=seq)
+        writer.finish()
+    old_stats = json.loads(cli("stats", old, "--json")[1])["robots"]["r1"]
+    same = ("packets", "bytes", "changed_voxels", "raw_payload_bytes", "stored_payload_bytes", "vs_racer")
+    assert {k: old_stats[k] for k in same} == {k: got[k] for k in same}

@@ -78,3 +78,22 @@ def one_blas_thread():
     from threadpoolctl import threadpool_limits
 
     return threadpool_limits(limits=1, user_api="blas")
+
+
+def ordered_map(work, items, threads: int, ahead: int = 8):
+    """work(item) for each item of an iterable, in order, computed up to `ahead` items in advance
+    on the shared pool (work that releases the GIL: numba kernels, zstd), as a generator: memory
+    is bounded by the items in flight, not the stream."""
+    from collections import deque
+
+    if threads <= 1:
+        yield from map(work, items)
+        return
+    pool = thread_pool(threads)
+    pending: deque = deque()
+    for item in items:
+        pending.append(pool.submit(work, item))
+        if len(pending) >= ahead:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()

@@ -92,19 +92,16 @@ def run_steps(names: list[str], tmp: str) -> dict:
     return times
 
 
-def _run_group(job: tuple) -> dict:
-    return run_steps(*job)
-
-
 def compile_ahead(progress: bool | None = None, jobs: int | None = None) -> dict:
     """Run every command once on the sample so that numba's cache holds every kernel; returns
     the seconds each step took (compiling, or loading what was already cached).
 
-    The step groups run in `jobs` processes (default: one per group, at most one per core).
-    numba writes each cache file to a temporary name and renames it, so two processes that
-    compile the same kernel both leave a whole file."""
+    With `jobs` > 1 each group of steps runs in its own `voxtool compile --group K` process
+    (default: one per group, at most one per core). numba writes each cache file to a temporary
+    name and renames it, so two processes that compile the same kernel both leave a whole file."""
+    import json
     import os
-    from multiprocessing import get_context
+    import subprocess
 
     from voxtool.progress import bar
 
@@ -113,27 +110,39 @@ def compile_ahead(progress: bool | None = None, jobs: int | None = None) -> dict
     # no bar where stderr is not a terminal (an install log, CI): one line per group instead,
     # so that the half minute this takes is not silent
     lines = progress is None and not sys.stderr.isatty()
-    with tempfile.TemporaryDirectory(prefix="voxtool-compile-") as tmp:
-        total = sum(len(g) for g in _GROUPS)
-        with bar(total, "compiling", progress, unit="command") as done:
-            def finished(group_times: dict) -> None:
-                times.update(group_times)
-                done.update(len(group_times))
-                if lines:
-                    click.echo(f"voxtool compile: {len(times)}/{total} {', '.join(group_times)}: "
-                               f"{sum(group_times.values()):.1f} s", err=True)
+    total = sum(len(g) for g in _GROUPS)
+    with bar(total, "compiling", progress, unit="command") as done:
+        def finished(group_times: dict) -> None:
+            times.update(group_times)
+            done.update(len(group_times))
+            if lines:
+                click.echo(f"voxtool compile: {len(times)}/{total} {', '.join(group_times)}: "
+                           f"{sum(group_times.values()):.1f} s", err=True)
 
-            if jobs <= 1:
+        if jobs <= 1:
+            with tempfile.TemporaryDirectory(prefix="voxtool-compile-") as tmp:
                 for group in _GROUPS:
                     finished(run_steps(list(group), tmp))
-            else:
-                pool = get_context("spawn").Pool(jobs)
-                try:
-                    for group_times in pool.imap_unordered(_run_group, [(list(g), tmp) for g in _GROUPS]):
-                        finished(group_times)
-                finally:  # Ctrl-C or a failed step: the other group's process is stopped, not waited for
-                    pool.terminate()
-                    pool.join()
+            return times
+        # one process per group (subprocesses, not a multiprocessing pool: Ctrl-C reaches them as
+        # it reaches this process, and nothing is left behind)
+        procs = [subprocess.Popen([sys.executable, "-m", "voxtool.cli", "compile", "--group", str(k), "--json",
+                                   "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for k in range(len(_GROUPS))]
+        try:
+            for proc in procs:
+                out, err = proc.communicate()
+                if proc.returncode == 130:
+                    raise KeyboardInterrupt
+                if proc.returncode != 0:
+                    line = err.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
+                    raise VoxtoolError(line[0].removeprefix("voxtool: error: "))
+                finished(json.loads(out)["seconds"])
+        finally:
+            for proc in procs:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
     return times
 
 
@@ -142,14 +151,16 @@ def compile_ahead(progress: bool | None = None, jobs: int | None = None) -> dict
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @click.option("--jobs", type=click.IntRange(1, None), default=None,
               help="Processes compiling at once (default: 2, or 1 on a one-core machine).")
+@click.option("--group", type=int, default=None, hidden=True, help="Run one group of steps (a worker of --jobs).")
 @handle_errors
-def compile_cmd(as_json, progress, jobs):
+def compile_cmd(as_json, progress, jobs, group):
     """Compile every kernel ahead into numba's cache (beside the installed sources, or
     NUMBA_CACHE_DIR), by running each command once on a sliver of the shipped sample.
 
     Without it, each command's first run after an install compiles the kernels it needs
-    (about 3 s for `build`, 2 s for `encode --codec cm`). This takes about a minute once (29-67
-    s from an empty cache on a 2-core machine; 2 s when the cache is full); run it again only
+    (about 3 s for `build`, 2 s for `encode --codec cm`). This takes about half a minute once (23
+    s from an empty cache on an idle 2-core machine, in two processes; 2 s when the cache is
+    full); run it again only
     after changing voxtool's sources (the cache then recompiles by itself). Where stderr is no
     terminal it prints one line per command instead of a bar.
 
@@ -158,7 +169,11 @@ def compile_cmd(as_json, progress, jobs):
       pip install -e . && voxtool compile
     """
     t0 = time.perf_counter()
-    times = compile_ahead(progress, jobs)
+    if group is not None:
+        with tempfile.TemporaryDirectory(prefix="voxtool-compile-") as tmp:
+            times = run_steps(list(_GROUPS[group]), tmp)
+    else:
+        times = compile_ahead(progress, jobs)
     total = round(time.perf_counter() - t0, 2)
     emit({"seconds": times, "total_s": total}, as_json,
          [("commands", str(len(times))), ("time", f"{total:.1f} s (compiling, or loading the cached kernels)")])

@@ -65,9 +65,9 @@ def stats(map_files, as_json, baseline, tolerance, progress, plot, workers, sche
                 ("total bandwidth", f"avg {number(result['total']['avg_Bps'])} B/s, max {number(result['total']['max_Bps'])} B/s")]
         for robot, r in result["robots"].items():
             rows.append((f"robot {robot}", f"{r['scheme']}/{r['codec']}: avg {number(r['avg_Bps'])} B/s, max "
-                                           f"{number(r['max_Bps'])} B/s, {number(r['bytes_per_changed_voxel'])} B/changed voxel, "
-                                           f"x{number(r['compression_ratio'])} compression, "
-                                           f"{number(r['ratio_to_raw_sensor'] or 0)} of raw sensor B/s"))
+                                           f"{number(r['max_Bps'])} B/s over 1 s, {number(r['bytes_per_changed_voxel'])} "
+                                           f"B a changed voxel"))
+            rows += [("", line) for line in ratio_lines(r)]
         if plot is not None:
             rows.append(("plot", str(plot)))
     else:
@@ -106,3 +106,21 @@ def _plot_logs(logs: list[Path], plot: Path, as_json: bool, progress) -> None:
                        f"{', '.join(r['robots'])}") for log, r in zip(logs, results)]
     rows.append(("plot", f"{plot}: {len(series)} robots"))
     emit(out, as_json, rows, written=plot)
+
+
+def ratio_lines(r: dict) -> list[str]:
+    """Each size ratio of a robot's packets, saying what it is against."""
+    from voxtool.stats import number
+
+    lines = []
+    if r["scheme"] in ("hilbert", "nested"):
+        lines.append(f"payloads x{number(r['compression_ratio'])} smaller than the dense 2-bit boxes they code")
+    else:
+        lines.append(f"payloads x{number(r['compression_ratio'])} smaller than before compression")
+    if r.get("vs_racer"):
+        lines.append(f"packets x{number(r['vs_racer'])} smaller than RACER's address + state lists of the same "
+                     "changes (addressed in each packet's box: RACER's least)")
+    if r.get("ratio_to_raw_sensor"):
+        lines.append(f"bandwidth {number(r['ratio_to_raw_sensor'])} of the raw sensor data's "
+                     f"({number(r['raw_sensor_Bps'])} B/s)")
+    return lines

@@ -15,7 +15,7 @@ from voxtool.codec.packet import FREE, OCCUPIED, UNKNOWN, encode_packet, keyfram
 from voxtool.errors import ParameterError
 from voxtool.keys import key_bounds, morton_decode
 from voxtool.maps.base import MapBackend, removed_voxels, update_codes
-from voxtool.parallel import one_blas_thread
+from voxtool.parallel import one_blas_thread, resolve_threads, run_parts
 from voxtool.sources import ScanStream
 
 
@@ -157,6 +157,7 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
     seq = 0
     last_emit = None
     period = int(1e9 / opts.rate_hz)
+    threads = resolve_threads(getattr(backend, "threads", 0))
     backend.warm_up()
     if opts.codec in ("cm", "cm1"):
         from voxtool.codec.cm import warm_up
@@ -175,20 +176,27 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
                         for a in range(0, max(pend_codes.shape[0], 1), opts.max_changes)]
             else:
                 runs = [(0, pend_codes.shape[0])]
-            for a, b in runs:
-                t0 = time.perf_counter()
+            def packet(job: tuple[int, tuple[int, int]]) -> tuple[bytes, int]:
+                k, (a, b) = job
                 keys = morton_decode(pend_codes[a:b]).astype(np.int64)
-                box = None
+                box, cells = None, 0
                 if opts.scheme == "racer":
                     box = (map_lo, map_hi - map_lo + 1)
                 elif opts.scheme in ("hilbert", "nested") and keys.shape[0]:
                     lo, hi = key_bounds(keys)
                     box = (lo, hi - lo + 1)
-                    rep.encoded_cells += int(np.prod(box[1]))
-                blob = encode_packet(opts.robot, seq, stamp, opts.scheme, opts.codec, res, keys, pend_states[a:b],
+                    cells = int(np.prod(box[1]))
+                return encode_packet(opts.robot, seq + k, stamp, opts.scheme, opts.codec, res, keys, pend_states[a:b],
                                      box=box, map_origin=opts.map_origin,
-                                     frames=list(frames) if opts.scheme == "occupied" else None)
-                rep.time_encode_s += time.perf_counter() - t0
+                                     frames=list(frames) if opts.scheme == "occupied" else None), cells
+
+            t0 = time.perf_counter()
+            # the packets of one emission are built side by side (numba's kernels and zstd release
+            # the GIL; each packet is coded on its own, so the bytes are those of one thread)
+            built = run_parts(threads, packet, list(enumerate(runs)))
+            rep.time_encode_s += time.perf_counter() - t0
+            for blob, cells in built:
+                rep.encoded_cells += cells
                 log.write(opts.robot, seq, stamp, blob)
                 rep.packets += 1
                 rep.wire_bytes += len(blob)

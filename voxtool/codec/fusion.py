@@ -67,19 +67,63 @@ class FusionResult:
     origin: tuple = (0.0, 0.0, 0.0)  # the packets' map_origin: where key 32768's corner sits in the scans' frame
 
 
-def _log_packets(path: Path):
-    """(packet count, stream of ((stamp, robot, seq), path, packet)) of a log, checked in order."""
+class LatestStates:
+    """Each voxel's latest state over packets added in order, kept as a sorted set and merged
+    with batches of packets (a batch at least half the set: amortised linear), so memory is the
+    set plus a batch, not every change of every packet."""
+
+    MIN_BATCH = 1 << 20
+
+    def __init__(self) -> None:
+        self.codes = np.zeros(0, np.int64)
+        self.states = np.zeros(0, np.uint8)
+        self._codes: list[np.ndarray] = []
+        self._states: list[np.ndarray] = []
+        self._pending = 0
+
+    def add(self, codes: np.ndarray, states: np.ndarray) -> None:
+        self._codes.append(codes)
+        self._states.append(states)
+        self._pending += codes.shape[0]
+        if self._pending >= max(self.MIN_BATCH, self.codes.shape[0] // 2):
+            self._merge()
+
+    def _merge(self) -> None:
+        from voxtool.kernels.sort import latest_per_code, merge_latest_sorted
+
+        if not self._codes:
+            return
+        codes, states = latest_per_code(np.concatenate(self._codes), np.concatenate(self._states))
+        self._codes, self._states, self._pending = [], [], 0
+        self.codes, self.states = merge_latest_sorted(self.codes, self.states, codes, states)
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        self._merge()
+        return self.codes, self.states
+
+
+def _log_packets(path: Path, extrinsics: dict | None = None):
+    """(packet count, stream of ((stamp, robot, seq), path, (packet, its voxels' Morton codes in
+    the fused frame))) of a log, checked in order; packets are decoded ahead on every core."""
     _, messages = read_log(path)
+    extrinsics = extrinsics or {}
+
+    def decode(message):
+        robot, _, blob = message
+        # a packet's voxels in any order: fusion sorts them by code itself
+        p = decode_packet(blob, f"{path}: packet of '{robot}'", ordered=False)
+        return p, _fused_codes(p, extrinsics)
 
     def stream():
+        from voxtool.parallel import ordered_map, usable_cores
+
         last: dict[str, int] = {}
-        for robot, _, blob in messages:
-            p = decode_packet(blob, f"{path}: packet of '{robot}'")
+        for p, codes in ordered_map(decode, messages, usable_cores()):
             if p.stamp_ns < last.get(p.robot, -1):
                 raise FormatError(f"{path}: packet {p.seq} of robot '{p.robot}' (stamp {p.stamp_ns}) is older than the "
                                   "one before it")
             last[p.robot] = p.stamp_ns
-            yield (p.stamp_ns, p.robot, p.seq), path, p
+            yield (p.stamp_ns, p.robot, p.seq), path, (p, codes)
 
     return messages.count, stream()
 
@@ -99,19 +143,19 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
         twice = sorted({str(p) for p in paths if paths.count(p) > 1})
         if twice:
             raise ParameterError(f"{twice[0]}: given twice (a log fused with itself would count its packets twice)")
-        logs = [_log_packets(p) for p in paths]
+        logs = [_log_packets(p, extrinsics) for p in paths]
         total = sum(count for count, _ in logs) if all(count is not None for count, _ in logs) else None
         ordered = heapq.merge(*(stream for _, stream in logs), key=lambda item: item[0])
         packets = ((path, p) for _, path, p in ordered)
     else:
-        packets = ((None, p) for p in packets)
+        packets = ((None, (p, _fused_codes(p, extrinsics))) for p in packets)
     packets = track(packets, total, "fuse", progress, "packet")
-    codes_parts, rank_parts, state_parts = [], [], []
+    latest = LatestStates()
     robots: dict[str, dict] = {}
     resolution = first_from = origin = None
     rank = 0
     seen: dict[str, dict] = {}  # robot -> (seq, kind) -> the log it came from
-    for path, p in packets:
+    for path, (p, codes) in packets:
         where = f"{path}: " if path is not None else ""
         if resolution is None:
             resolution, first_from = p.resolution, path
@@ -138,33 +182,19 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
         seen_ids[(p.seq, p.kind)] = path
         if p.kind == 0:
             info["seqs"].add(p.seq)
-        keys = p.keys
-        if p.robot in extrinsics:
-            keys = extrinsics[p.robot].apply(keys, p.resolution)
-        codes_parts.append(morton_encode(keys))
         if on_packet is not None:
-            on_packet(p, codes_parts[-1])
-        state_parts.append(p.states)
-        rank_parts.append(np.full(keys.shape[0], rank, dtype=np.int64))
+            on_packet(p, codes)
+        latest.add(codes, p.states)
         rank += 1
     _warn_clocks_apart(robots)
     for info in robots.values():
         seqs = sorted(info.pop("seqs"))
         missing = sorted(set(range(seqs[0], seqs[-1] + 1)) - set(seqs)) if seqs else []
         info["gaps"] = missing
-    if not codes_parts:
-        return FusionResult(np.zeros(0, np.int64), np.zeros(0, np.uint8), resolution or 0.0, 0, robots,
-                            origin=origin or (0.0, 0.0, 0.0))
-    codes = np.concatenate(codes_parts)
-    states = np.concatenate(state_parts)
-    ranks = np.concatenate(rank_parts)
-    order = np.lexsort((ranks, codes))  # by code, then by visiting order: the last one wins
-    codes, states = codes[order], states[order]
-    last = np.ones(codes.shape[0], dtype=bool)
-    last[:-1] = codes[1:] != codes[:-1]
-    codes, states = codes[last], states[last]
+    codes, states = latest.result()
     known = states != UNKNOWN
-    return FusionResult(codes[known], states[known], resolution, rank, robots, origin=origin)
+    return FusionResult(codes[known], states[known], resolution or 0.0, rank, robots,
+                        origin=origin or (0.0, 0.0, 0.0))
 
 
 DAY_NS = 86_400 * 10**9
@@ -185,6 +215,14 @@ def _warn_clocks_apart(robots: dict[str, dict]) -> None:
         days = (first[late] - first[early]) / DAY_NS
         warnings.warn(f"robot '{late}' is stamped {days:,.0f} days after robot '{early}': fusion by latest stamp lets "
                       f"'{late}' win every voxel both saw; fuse logs stamped on one clock", VoxtoolWarning, stacklevel=3)
+
+
+def _fused_codes(p: Packet, extrinsics: dict) -> np.ndarray:
+    """A packet's voxels as Morton codes in the fused frame (its robot's extrinsic applied)."""
+    keys = p.keys
+    if p.robot in extrinsics:
+        keys = extrinsics[p.robot].apply(keys, p.resolution)
+    return morton_encode(keys)
 
 
 def fused_leaves(result: FusionResult, sensor):
@@ -208,4 +246,4 @@ def save_state_map(path, result: FusionResult, info: dict) -> None:
 
 
 def packets_of(path: Path) -> list[Packet]:
-    return [p for _, _, p in _log_packets(path)[1]]
+    return [p for _, _, (p, _) in _log_packets(path)[1]]

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from voxtool.codec.log import read_log
-from voxtool.codec.packet import HEADER, decode_packet
+from voxtool.codec.log import PacketHeader, read_log
+from voxtool.codec.packet import HEADER, address_width, decode_packet
 
 
 def log_stats(path: str | Path, progress: bool | None = False, series: dict | None = None) -> dict:
@@ -17,24 +17,31 @@ def log_stats(path: str | Path, progress: bool | None = False, series: dict | No
     from voxtool.progress import track
 
     path = Path(path)
-    meta, messages = read_log(path)
+    meta, messages = read_log(path, headers=True)
     rows: dict[str, dict] = {}
     stamps, sizes = [], []
-    for robot, _, blob in track(messages, messages.count, "stats", progress, "packet"):
-        p = decode_packet(blob, f"{path}: packet of '{robot}'")
-        r = rows.setdefault(p.robot, {"packets": 0, "keyframes": 0, "bytes": 0, "raw_payload_bytes": 0,
-                                      "stored_payload_bytes": 0, "changed_voxels": 0, "stamps": [], "sizes": [],
-                                      "scheme": p.scheme, "codec": p.codec})
+    for h in track(messages, messages.count, "stats", progress, "packet"):
+        r = rows.get(h.robot)
+        if r is None:
+            r = rows[h.robot] = {"packets": 0, "keyframes": 0, "bytes": 0, "raw_payload_bytes": 0,
+                                 "stored_payload_bytes": 0, "changed_voxels": 0, "racer_bytes": 0, "stamps": [],
+                                 "sizes": [], "scheme": h.scheme, "codec": h.codec}
+        size = h.wire_bytes
         r["packets"] += 1
-        r["keyframes"] += int(p.kind == 1)
-        r["bytes"] += len(blob)
-        r["raw_payload_bytes"] += p.raw_size
-        r["stored_payload_bytes"] += p.stored_size
-        r["changed_voxels"] += int(p.keys.shape[0]) if p.kind == 0 else 0
-        r["stamps"].append(p.stamp_ns)
-        r["sizes"].append(len(blob))
-        stamps.append(p.stamp_ns)
-        sizes.append(len(blob))
+        r["bytes"] += size
+        r["raw_payload_bytes"] += h.raw_size
+        r["stored_payload_bytes"] += h.stored_size
+        if h.kind == 0:
+            # a delta's header counts the voxels it changes, except an `occupied` packet's (frames)
+            changed = h.count if h.scheme != "occupied" else _occupied_voxels(h, path)
+            r["changed_voxels"] += changed
+            r["racer_bytes"] += HEADER.size + racer_payload_bytes(changed, h.box_cells)
+        else:
+            r["keyframes"] += 1
+        r["stamps"].append(h.stamp_ns)
+        r["sizes"].append(size)
+        stamps.append(h.stamp_ns)
+        sizes.append(size)
     out_robots = {}
     for robot, r in rows.items():
         m = meta.get(robot, {})
@@ -46,7 +53,9 @@ def log_stats(path: str | Path, progress: bool | None = False, series: dict | No
         raw_bps = m.get("raw_sensor_bytes", 0) / span if span else None
         r.update(bw)
         r["duration_s"] = round(span, 6)
+        # each ratio named by what it is against (docs/packets.md)
         r["compression_ratio"] = round(r["raw_payload_bytes"] / max(r["stored_payload_bytes"], 1), 3)
+        r["vs_racer"] = round(r.pop("racer_bytes") / max(r["bytes"], 1), 3) if r["changed_voxels"] else None
         r["bytes_per_changed_voxel"] = round(r["bytes"] / max(r["changed_voxels"], 1), 4)
         r["raw_sensor_Bps"] = round(raw_bps, 1) if raw_bps else None
         r["ratio_to_raw_sensor"] = round(r["avg_Bps"] / raw_bps, 6) if raw_bps else None
@@ -75,3 +84,15 @@ def _bandwidth(stamps: np.ndarray, sizes: np.ndarray, span: float) -> dict:
     # a log shorter than one window (or ending in a partial one) would report a maximum below
     # its own average; the busiest second is never quieter than the average
     return {"avg_Bps": round(avg, 1), "max_Bps": round(max(float(per_second.max()), avg), 1)}
+
+
+def racer_payload_bytes(changed: int, cells: int) -> int:
+    """RACER's payload for `changed` voxels of a box of `cells`: an address of the fewest whole
+    bytes that index the box, and a 2-bit state, per voxel (the paper's Fig. 5 rule); addressed in
+    the packet's own box, the least RACER could spend (it addresses the whole map)."""
+    return changed * address_width((max(cells, 1), 1, 1)) + (changed + 3) // 4
+
+
+def _occupied_voxels(h: PacketHeader, path: Path) -> int:
+    """Voxels an `occupied` packet sets (its header counts frames): the packet is decoded."""
+    return int(decode_packet(h.packet(), f"{path}: packet of '{h.robot}'").keys.shape[0])

@@ -123,6 +123,44 @@ def address_width(dims) -> int:
     return max(1, (max(cells - 1, 1).bit_length() + 7) // 8)
 
 
+def _ranks(scheme: str, rel: np.ndarray, dims) -> np.ndarray:
+    """Each cell's position in the payload: its curve rank (hilbert) or nested index."""
+    if scheme == "hilbert":
+        from voxtool.codec.hilbert import ranks_of
+
+        return ranks_of(rel, dims)
+    return rel[:, 0] + int(dims[0]) * (rel[:, 1] + int(dims[1]) * rel[:, 2])
+
+
+def _changed_cells(raw: bytes, scheme: str, dims, count: int, where: str,
+                   ordered: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(nested indices, codes) of a delta payload's cells that are not 'unchanged', in nested
+    order, found by the bytes that differ from four unchanged cells; more or fewer than the
+    header's `count` is an error."""
+    from voxtool.kernels.cells2bit import scan
+
+    cells = int(np.prod(np.asarray(dims, dtype=np.int64)))
+    data = np.frombuffer(raw, dtype=np.uint8)
+    candidates = np.flatnonzero(data != UNCHANGED * 0x55)
+    capacity = min(count, 4 * candidates.shape[0])
+    ranks, codes = np.empty(capacity, dtype=np.int64), np.empty(capacity, dtype=np.uint8)
+    found = scan(data, candidates, cells, UNCHANGED, ranks, codes)
+    if found < 0:
+        raise FormatError(f"{where}: more changed cells than the header's {count}")
+    if found != count:
+        raise FormatError(f"{where}: {found} changed cells, header declares {count}")
+    if scheme == "hilbert":
+        from voxtool.codec.hilbert import cells_at
+
+        xyz = cells_at(ranks, dims)
+        idx = xyz[:, 0] + int(dims[0]) * (xyz[:, 1] + int(dims[1]) * xyz[:, 2])
+        if not ordered:
+            return idx, codes
+        order = np.argsort(idx, kind="stable")
+        return idx[order], codes[order]
+    return ranks, codes
+
+
 def _cell_order(scheme: str, dims) -> np.ndarray | None:
     if scheme == "hilbert":
         from voxtool.codec.hilbert import box_order
@@ -195,6 +233,17 @@ def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, 
                 stored = compress_cells(idx, vals, dims, background)
                 return _assemble(robot, seq, stamp_ns, scheme, codec, kind, resolution, map_origin, lo, dims, count,
                                  (cells + 3) // 4, stored)
+            if kind == KIND_DELTA and codec != "cm1":
+                # the changed cells placed at their ranks in a payload of unchanged ones
+                from voxtool.kernels.cells2bit import place
+
+                rel = keys - lo
+                ranks = _ranks(scheme, rel, dims)
+                payload = np.empty((cells + 3) // 4, dtype=np.uint8)
+                place(ranks, states, cells, UNCHANGED, payload)
+                raw = payload.tobytes()
+                return _assemble(robot, seq, stamp_ns, scheme, codec, kind, resolution, map_origin, lo, dims,
+                                 int(keys.shape[0]), len(raw), _compress(raw, codec))
             if kind == KIND_KEYFRAME:
                 grid = states
                 if grid.shape[0] != cells:
@@ -245,8 +294,9 @@ def keyframe_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str
                          box=(lo, dims), map_origin=map_origin)
 
 
-def decode_packet(blob: bytes, where: str = "packet") -> Packet:
-    """Parse and decode one packet, checking magic, version, CRC and every size before use."""
+def decode_packet(blob: bytes, where: str = "packet", ordered: bool = True) -> Packet:
+    """Parse and decode one packet, checking magic, version, CRC and every size before use.
+    A box's voxels come in nested order (x fastest), or as found where not `ordered`."""
     if len(blob) < HEADER.size:
         raise FormatError(f"{where}: {len(blob)} bytes is shorter than the {HEADER.size}-byte packet header")
     f = HEADER.unpack_from(blob, 0)
@@ -316,7 +366,9 @@ def decode_packet(blob: bytes, where: str = "packet") -> Packet:
         grid = decompress_box(blob[HEADER.size:], dims_a, background, where)
     else:
         raw = _decompress(blob[HEADER.size:], codec, raw_size, where)
-        if scheme in ("hilbert", "nested"):
+        if scheme in ("hilbert", "nested") and kind == KIND_DELTA:
+            idx_changed, states = _changed_cells(raw, scheme, dims_a, count, where, ordered)
+        elif scheme in ("hilbert", "nested"):
             codes = unpack_2bit(raw, cells)
             order = _cell_order(scheme, dims_a)
             grid = np.empty(cells, dtype=np.uint8)

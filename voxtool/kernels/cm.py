@@ -155,7 +155,7 @@ def _make_coder(decode: bool):
     """The encoder or the decoder: one loop written once, so both sides build the same contexts;
     `decode` is a compile-time constant of each, so neither carries the other's branches."""
 
-    @njit(cache=True)
+    @njit(cache=True, nogil=True)
     def code_box(codes, nx, ny, nz, background, data):
         other = 2 if background == 3 else 3  # the non-background code that is neither free nor occupied
         # a box without cells codes nothing: no rows to walk and no planes (a side of 0 beside two
@@ -241,7 +241,7 @@ N_CONTEXTS_BLOCKS = N_CONTEXTS + 8
 def _make_block_coder(decode: bool):
     """Codec 4's encoder or decoder (one loop, `decode` a compile-time constant of each)."""
 
-    @njit(cache=True)
+    @njit(cache=True, nogil=True)
     def code_blocks(idx, vals, nx, ny, nz, background, data, out_idx, out_vals):
         other = 2 if background == 3 else 3
         bxn = (nx + BLOCK - 1) // BLOCK

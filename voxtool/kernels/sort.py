@@ -15,16 +15,18 @@ DIGIT_BITS = 11  # 2,048 buckets: their counts (16 KB) stay in L1 and a pass cos
 
 
 @njit(cache=True, nogil=True)
-def sort_codes(a, scratch):
+def sort_codes(a, scratch, first_bit=0):
     """Sort the non-negative int64 values of `a` in place, ascending; `scratch` is working room
     of at least a's length. Each pass sorts by the next DIGIT_BITS bits from the lowest bit
-    that differs between the values, skipping bits they all share."""
+    that differs between the values, skipping bits they all share. Bits below `first_bit` are
+    not sorted by: values equal above it keep their order (the sort is stable)."""
     n = a.shape[0]
     if n < 2:
         return
     differ = np.int64(0)  # the bits that are not the same in every value
     for i in range(n):
         differ |= a[i] ^ a[0]
+    differ &= ~((np.int64(1) << first_bit) - 1)
     mask = (1 << DIGIT_BITS) - 1
     start = np.empty(1 << DIGIT_BITS, np.int64)
     src, dst = a, scratch[:n]
@@ -51,3 +53,54 @@ def sort_codes(a, scratch):
         shift += DIGIT_BITS
     if not in_a:
         a[:] = src
+
+
+@njit(cache=True, nogil=True)
+def merge_latest_sorted(codes_a, states_a, codes_b, states_b):
+    """The union of two sorted, unique change sets, b's state where both hold a voxel: one pass."""
+    out_codes = np.empty(codes_a.shape[0] + codes_b.shape[0], dtype=np.int64)
+    out_states = np.empty(out_codes.shape[0], dtype=np.uint8)
+    i = j = k = 0
+    while i < codes_a.shape[0] and j < codes_b.shape[0]:
+        if codes_a[i] < codes_b[j]:
+            out_codes[k] = codes_a[i]
+            out_states[k] = states_a[i]
+            i += 1
+        else:
+            if codes_a[i] == codes_b[j]:
+                i += 1
+            out_codes[k] = codes_b[j]
+            out_states[k] = states_b[j]
+            j += 1
+        k += 1
+    while i < codes_a.shape[0]:
+        out_codes[k] = codes_a[i]
+        out_states[k] = states_a[i]
+        i += 1
+        k += 1
+    while j < codes_b.shape[0]:
+        out_codes[k] = codes_b[j]
+        out_states[k] = states_b[j]
+        j += 1
+        k += 1
+    return out_codes[:k], out_states[:k]
+
+
+@njit(cache=True, nogil=True)
+def latest_per_code(codes, states):
+    """(sorted unique codes, the state each had last) of changes listed in the order they came."""
+    n = codes.shape[0]
+    packed = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        packed[i] = (codes[i] << 2) | states[i]  # states are 2-bit codes; the sort keeps their order
+    sort_codes(packed, np.empty(n, dtype=np.int64), 2)
+    out_codes = np.empty(n, dtype=np.int64)
+    out_states = np.empty(n, dtype=np.uint8)
+    k = 0
+    for i in range(n):
+        if i + 1 < n and (packed[i + 1] >> 2) == (packed[i] >> 2):
+            continue  # a later change of the same voxel follows
+        out_codes[k] = packed[i] >> 2
+        out_states[k] = packed[i] & 3
+        k += 1
+    return out_codes[:k], out_states[:k]

@@ -1,0 +1,87 @@
+"""Box payloads built and read by their changed cells only (hilbert.ranks_of / cells_at,
+kernels.cells2bit, the fusion's running latest-state set) against the whole-box references they
+replace: the Hilbert order of every cell (box_order, itself checked against Skilling's index),
+a dense grid packed cell by cell, and a lexicographic sort of every change."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from voxtool.codec.hilbert import box_order, cells_at, ranks_of
+from voxtool.codec.packet import UNCHANGED, decode_packet, encode_packet, pack_2bit
+
+dims_st = st.tuples(st.integers(1, 33), st.integers(1, 33), st.integers(1, 20))
+
+
+def _cells(dims, seed, share):
+    rng = np.random.default_rng(seed)
+    n = int(np.prod(dims))
+    idx = rng.choice(n, max(1, int(n * share)), replace=False)
+    rel = np.stack([idx % dims[0], (idx // dims[0]) % dims[1], idx // (dims[0] * dims[1])], axis=1)
+    return idx, rel, rng
+
+
+@settings(max_examples=150)
+@given(dims_st, st.integers(0, 2**32 - 1), st.floats(0.0, 1.0))
+def test_ranks_and_cells_are_the_curve_of_every_cell(dims, seed, share):
+    order = box_order(*dims)  # nested index of every cell, in curve order
+    rank_of = np.empty(order.shape[0], np.int64)
+    rank_of[order] = np.arange(order.shape[0])
+    idx, rel, _ = _cells(dims, seed, share)
+    ranks = ranks_of(rel, dims)
+    assert np.array_equal(ranks, rank_of[idx])
+    back = cells_at(np.sort(ranks), dims)
+    assert np.array_equal(back[:, 0] + dims[0] * (back[:, 1] + dims[1] * back[:, 2]), order[np.sort(ranks)])
+
+
+@settings(max_examples=120)
+@given(dims_st, st.integers(0, 2**32 - 1), st.floats(0.0, 0.5), st.sampled_from(["hilbert", "nested"]),
+       st.sampled_from(["none", "zstd"]))
+def test_a_delta_payload_is_the_dense_grid_packed_cell_by_cell(dims, seed, share, scheme, codec):
+    """The payload of placed changed cells equals the whole grid of 'unchanged' with the changes
+    set, put in curve (or nested) order and packed; decoding gives the changes back."""
+    idx, rel, rng = _cells(dims, seed, share)
+    lo = np.array([30000, 31000, 32000])
+    states = rng.integers(0, 3, idx.shape[0]).astype(np.uint8)
+    blob = encode_packet("r", 0, 0, scheme, codec, 0.1, rel + lo, states, box=(lo, np.array(dims)))
+    grid = np.full(int(np.prod(dims)), UNCHANGED, np.uint8)
+    grid[idx] = states
+    reference = pack_2bit(grid[box_order(*dims)] if scheme == "hilbert" else grid)
+    packet = decode_packet(blob)
+    assert packet.raw_size == len(reference) and packet.count == idx.shape[0]
+    if codec == "none":
+        assert blob[96:] == reference
+    order = np.argsort(idx)
+    assert np.array_equal(packet.keys.astype(np.int64), (rel + lo)[order]) and np.array_equal(packet.states, states[order])
+    unordered = decode_packet(blob, ordered=False)
+    assert sorted(map(tuple, unordered.keys.tolist())) == sorted(map(tuple, packet.keys.tolist()))
+
+
+@settings(max_examples=80)
+@given(st.lists(st.lists(st.tuples(st.integers(0, 300), st.integers(0, 2)), max_size=60), max_size=40))
+def test_the_running_latest_state_equals_a_sort_of_every_change(packets):
+    """Packets fused in order: each voxel's state is its last change (the lexsort of all changes
+    by code, then by packet, that fusion used before), whatever the batch sizes."""
+    from voxtool.codec.fusion import LatestStates
+
+    latest = LatestStates()
+    latest.MIN_BATCH = 7  # small batches: merges of the running set happen many times
+    all_codes, all_states, ranks = [], [], []
+    for k, changes in enumerate(packets):
+        codes = np.array([c for c, _ in changes], np.int64)
+        states = np.array([s for _, s in changes], np.uint8)
+        latest.add(codes, states)
+        all_codes.append(codes)
+        all_states.append(states)
+        ranks.append(np.full(codes.shape[0], k))
+    got_codes, got_states = latest.result()
+    if not all_codes or not sum(c.shape[0] for c in all_codes):
+        assert got_codes.shape[0] == 0
+        return
+    codes, states, rank = map(np.concatenate, (all_codes, all_states, ranks))
+    order = np.lexsort((np.arange(codes.shape[0]), codes))  # by code, then in the order given
+    codes, states = codes[order], states[order]
+    last = np.append(codes[1:] != codes[:-1], True)
+    assert np.array_equal(got_codes, codes[last]) and np.array_equal(got_states, states[last])

@@ -1,0 +1,51 @@
+"""2-bit cell payloads built and read by their few non-background cells.
+
+A box payload is one 2-bit code per cell, four to a byte (formats/packet.md). A delta's box is
+mostly the background code (unchanged), so a payload is written as the background byte repeated
+with the changed cells placed at their ranks, and read by scanning for the bytes that differ
+from it: memory traffic of a byte per four cells, no per-cell index array.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+UNCHANGED = 3
+
+
+@njit(cache=True, nogil=True)
+def place(ranks, codes, cells, background, out):
+    """Fill `out` ((cells + 3) // 4 bytes) with `background` in every cell, the padding cells
+    after the last with UNCHANGED, then put codes[i] at cell ranks[i]."""
+    fill = background * 0x55
+    for i in range(out.shape[0]):
+        out[i] = fill
+    for r in range(cells, out.shape[0] * 4):  # padding, as pack_2bit writes it
+        out[r >> 2] = (out[r >> 2] & ~(3 << (2 * (r & 3)))) | (UNCHANGED << (2 * (r & 3)))
+    for i in range(ranks.shape[0]):
+        r = ranks[i]
+        shift = 2 * (r & 3)
+        out[r >> 2] = (out[r >> 2] & ~(3 << shift)) | (codes[i] << shift)
+
+
+@njit(cache=True, nogil=True)
+def scan(data, candidates, cells, background, out_ranks, out_codes):
+    """The cells (rank, code) of bytes `candidates` of `data` whose code is not `background`, in
+    rank order (padding cells past `cells` are not cells). Returns how many, or -1 when there are
+    more than `out_ranks` holds."""
+    m = 0
+    for j in range(candidates.shape[0]):
+        i = candidates[j]
+        b = data[i]
+        for k in range(4):
+            r = 4 * i + k
+            if r >= cells:
+                break
+            c = (b >> (2 * k)) & 3
+            if c != background:
+                if m == out_ranks.shape[0]:
+                    return -1
+                out_ranks[m] = r
+                out_codes[m] = c
+                m += 1
+    return m
