@@ -6,6 +6,8 @@
     python benchmarks/bench_packets.py throughput                 # encode/decode cells per second
     python benchmarks/bench_packets.py split                      # one stream as two robots: fusion, resend
     python benchmarks/bench_packets.py codecs [--runs 2]          # whole `encode`, zstd vs cm: first run and warm
+    python benchmarks/bench_packets.py onboard                    # per packet at the paper's setting, vs its Table IV
+    python benchmarks/bench_packets.py disk [--log-mb 120] [--base REV]  # stats / merge / decode against building
 
 Prints tables and writes bench-results/packets_<mode>.json.
 """
@@ -13,6 +15,7 @@ Prints tables and writes bench-results/packets_<mode>.json.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import subprocess
 import sys
@@ -323,9 +326,167 @@ def codecs(data: Path, runs: int) -> dict:
     return {"runs": runs, "rows": rows}
 
 
+PAPER_TABLE_IV_MS = {"pack": 5.30, "recv2insert": 7.08}  # ogm-sync-hilbert.md, Table IV (onboard computer)
+
+
+def onboard(data: Path) -> dict:
+    """Per packet at the paper's setting: quick_shack's handheld Livox stream (200 scans), 0.1 m,
+    7 m range, a packet at 50,000 changes or 0.5 s. pack: the packet from its changed voxels
+    (box, Hilbert order, 2-bit payload, zstd, header and CRC); recv2insert: from the received
+    bytes to the voxels in the fused map (checks, decompression, cells, Morton codes, the latest-
+    state set, whose batch merges show in the p95). One thread, each packet timed alone."""
+    from voxtool.api import encode_log
+    from voxtool.codec.encode import EncodeOptions
+    from voxtool.codec.fusion import LatestStates
+    from voxtool.codec.log import read_log
+    from voxtool.codec.packet import decode_packet, encode_packet
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.keys import morton_encode
+    from voxtool.sources import SourceOptions
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for scheme, codec in (("hilbert", "zstd"), ("nested", "cm")):
+            log = Path(tmp) / f"{codec}.mcap"
+            encode_log(data / "quick_shack" / "pcd", log, SourceOptions(stop=200), MapParams(resolution=0.1, max_range=7.0),
+                       SensorModel(), "octree", {}, EncodeOptions(robot="r1", scheme=scheme, codec=codec,
+                                                                  max_changes=50_000, max_interval=0.5), False)
+            _, messages = read_log(log)
+            blobs = [blob for _, _, blob in messages]
+            decoded = [decode_packet(b) for b in blobs]
+            for p in decoded[:3]:  # kernels loaded before timing
+                encode_packet(p.robot, p.seq, p.stamp_ns, p.scheme, p.codec, p.resolution, p.keys, p.states,
+                              box=(np.array(p.box_min), np.array(p.box_dims)))
+            pack = []
+            for p in decoded:
+                t0 = time.perf_counter()
+                encode_packet(p.robot, p.seq, p.stamp_ns, p.scheme, p.codec, p.resolution, p.keys, p.states,
+                              box=(np.array(p.box_min), np.array(p.box_dims)))
+                pack.append(time.perf_counter() - t0)
+            latest, recv = LatestStates(), []
+            for blob in blobs:
+                t0 = time.perf_counter()
+                p = decode_packet(blob, ordered=False)
+                latest.add(morton_encode(p.keys), p.states)
+                recv.append(time.perf_counter() - t0)
+            latest.result()
+            for stage, times in (("pack", pack), ("recv2insert", recv)):
+                ms = np.array(times) * 1e3
+                rows.append({"scheme": scheme, "codec": codec, "stage": stage, "packets": len(ms),
+                             "median_ms": round(float(np.median(ms)), 4), "p95_ms": round(float(np.percentile(ms, 95)), 4),
+                             "paper_ms": PAPER_TABLE_IV_MS[stage],
+                             "mean_bytes": round(float(np.mean([len(b) for b in blobs])), 1),
+                             "mean_changes": round(float(np.mean([p.count for p in decoded])), 1)})
+    print(f"{'scheme/codec':<14} {'stage':<12} {'packets':>7} {'median ms':>10} {'p95 ms':>8} {'paper ms':>9} "
+          f"{'bytes':>8} {'changes':>8}")
+    for r in rows:
+        print(f"{r['scheme'] + '/' + r['codec']:<14} {r['stage']:<12} {r['packets']:>7} {r['median_ms']:>10.3f} "
+              f"{r['p95_ms']:>8.3f} {r['paper_ms']:>9.2f} {r['mean_bytes']:>8.0f} {r['mean_changes']:>8.0f}")
+    return {"rows": rows, "paper_table_iv_ms": PAPER_TABLE_IV_MS}
+
+
+def _run(args: list, tree: Path | None = None) -> tuple[float, float]:
+    """A whole voxtool command (of the revision checked out at `tree`, or this one): (seconds
+    from start to exit, its own peak memory in MiB)."""
+    import os
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from bench_octree import run_timed
+
+    env = os.environ.copy()
+    if tree is not None:
+        os.environ["PYTHONPATH"] = str(tree)
+    try:
+        wall, rss, _ = run_timed([sys.executable, "-m", "voxtool.cli", *map(str, args), "--no-progress"])
+    finally:
+        os.environ.clear()
+        os.environ.update(env)
+    return wall, rss / 2**20
+
+
+def long_log(packets: list, path: Path, megabytes: float) -> float:
+    """A log of `megabytes` or more: the packets written again and again as one robot whose
+    sequence and stamps go on (headers rewritten, CRCs made anew). Returns its size in MB."""
+    import zlib
+
+    from voxtool.codec.log import PacketLogWriter
+    from voxtool.codec.packet import HEADER
+
+    size = sum(len(blob) for _, _, blob in packets)
+    span = packets[-1][1] - packets[0][1] + 100_000_000
+    rounds = max(1, int(np.ceil(megabytes * 1e6 / size)))
+    seq = 0
+    with PacketLogWriter(path) as writer:
+        for k in range(rounds):
+            for _, stamp, blob in packets:
+                fields = list(HEADER.unpack_from(blob, 0))
+                fields[6], fields[7], fields[21] = seq, stamp + k * span, 0
+                head = HEADER.pack(*fields)[:-4]
+                crc = zlib.crc32(blob[HEADER.size:], zlib.crc32(head))
+                writer.write("r1", seq, fields[7], head + crc.to_bytes(4, "little") + blob[HEADER.size:])
+                seq += 1
+    return path.stat().st_size / 1e6
+
+
+def disk(data: Path, log_mb: float, base: str | None = None) -> dict:
+    """Whole commands on kaist03 at unlimited range (21 scans, hilbert/zstd): encode, stats,
+    merge and decode of its log against building the map from the scans; then `stats` of a long
+    log of `log_mb` MB or more (kaist03's packets over and over), in MB of log a second beyond
+    start-up (the same command on a log of one packet). Peak memory of each command's own
+    process. `base`: the same commands of another revision too (a git worktree; each command run
+    once untimed first, so that its kernels are compiled)."""
+    from voxtool.codec.log import read_log
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from worktree import revision
+
+    scans = data / "kaist03" / "pcd"
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+        tmp = Path(tmp)
+        trees = [("now", None)]
+        if base is not None:
+            trees.insert(0, (base, stack.enter_context(revision(base, tmp))))
+        log = tmp / "r1.mcap"
+        for name, tree in trees:
+            commands = (("build", ["build", scans, "-o", tmp / "b.vxm"]),
+                        ("encode", ["encode", scans, "-o", log, "--robot", "r1"]),
+                        ("stats", ["stats", log]), ("merge", ["merge", log, "-o", tmp / "m.vxm"]),
+                        ("decode", ["decode", log, "-o", tmp / "d.vxm"]))
+            for command, args in commands:
+                if tree is not None:
+                    _run(args, tree)  # compiles the revision's kernels
+                seconds, peak = _run(args, tree)
+                rows.append({"revision": name, "command": command, "seconds": round(seconds, 3),
+                             "peak_rss_mib": round(peak, 1), "log_mb": round(log.stat().st_size / 1e6, 2)})
+        _, messages = read_log(log)
+        packets = list(messages)
+        size = long_log(packets, tmp / "long.mcap", log_mb)
+        long_log(packets[:1], tmp / "one.mcap", 0)  # start-up: the same command on a log of one packet
+        for name, tree in trees:
+            for plot in ([], ["--plot", tmp / "bw.png"]):
+                if plot and tree is not None:
+                    continue  # the base's --plot reads as its stats does
+                start, _ = _run(["stats", tmp / "one.mcap", *plot], tree)
+                seconds, peak = _run(["stats", tmp / "long.mcap", *plot], tree)
+                rows.append({"revision": name, "command": f"stats{' --plot' if plot else ''} of a {size:.0f} MB log",
+                             "seconds": round(seconds, 3), "start_up_s": round(start, 3), "peak_rss_mib": round(peak, 1),
+                             "log_mb": round(size, 1),
+                             "MB_per_s_beyond_start_up": round(size / max(seconds - start, 1e-9), 1)})
+    print(f"{'revision':<10} {'command':<30} {'seconds':>8} {'log MB':>8} {'peak MiB':>9}")
+    for r in rows:
+        print(f"{r['revision']:<10} {r['command']:<30} {r['seconds']:>8.2f} {r['log_mb']:>8} {r['peak_rss_mib']:>9}"
+              + (f"   {r['MB_per_s_beyond_start_up']} MB/s beyond start-up ({r['start_up_s']} s)"
+                 if "MB_per_s_beyond_start_up" in r else ""))
+    return {"rows": rows}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("mode", choices=["fig5", "streams", "intervals", "throughput", "split", "lossless", "codecs"])
+    ap.add_argument("mode", choices=["fig5", "streams", "intervals", "throughput", "split", "lossless", "codecs",
+                                     "onboard", "disk"])
+    ap.add_argument("--log-mb", type=float, default=120.0, help="disk: the long log's size for `stats`")
+    ap.add_argument("--base", default=None, help="disk: also run the commands of this git revision (before/after)")
     ap.add_argument("--samples", type=int, default=10)
     ap.add_argument("--runs", type=int, default=2, help="codecs: warm runs of each codec (the best is kept)")
     ap.add_argument("--pcd", action="store_true", help="streams: the PCD directories instead of the MCAP files")
@@ -334,7 +495,8 @@ def main() -> None:
     result = {"fig5": lambda: fig5(args.samples), "streams": lambda: streams(Path(args.data), args.pcd),
               "intervals": lambda: intervals(Path(args.data)), "throughput": throughput,
               "split": lambda: split(Path(args.data)), "lossless": lambda: lossless(Path(args.data)),
-              "codecs": lambda: codecs(Path(args.data), args.runs)}[args.mode]()
+              "codecs": lambda: codecs(Path(args.data), args.runs), "onboard": lambda: onboard(Path(args.data)),
+              "disk": lambda: disk(Path(args.data), args.log_mb, args.base)}[args.mode]()
     OUT.mkdir(exist_ok=True)
     suffix = "_pcd" if args.pcd and args.mode == "streams" else ""
     (OUT / f"packets_{args.mode}{suffix}.json").write_text(json.dumps(result, indent=2, default=str))

@@ -52,6 +52,12 @@ def test_stats_plot_is_refused_for_a_map_and_written_for_a_log(sample_logs, samp
     assert imread(plot).shape[:2] == (report["height"], report["width"]) and report["plot"] == str(plot)
     code, _, err = cli("stats", sample_map[0], "--plot", tmp_path / "m.png")
     assert code == 2 and "--plot draws the bandwidth of packet logs" in err and not (tmp_path / "m.png").exists()
+    from voxtool.codec.log import PacketLogWriter
+
+    with PacketLogWriter(tmp_path / "empty.mcap") as writer:  # a log closed before its first packet
+        writer.metadata("r1", {"scans": 0})
+    code, _, err = cli("stats", tmp_path / "empty.mcap", "--plot", tmp_path / "e.png")
+    assert code == 2 and err.count("\n") == 1 and "holds no packets" in err and not (tmp_path / "e.png").exists()
 
 
 def test_stats_plot_draws_several_robots_logs_in_one_plot(sample_logs, tmp_path):

@@ -56,6 +56,10 @@ def stats(map_files, as_json, baseline, tolerance, progress, plot, workers, sche
 
         series = {}
         result = log_stats(map_file, progress, series)
+        if not result["packets"]:
+            from voxtool.errors import ParameterError
+
+            raise ParameterError(f"{map_file}: the log holds no packets: there is nothing to plot")
         result.update(write_plot(log_figure(result, series), plot))
     else:
         result = any_stats(map_file, progress)
