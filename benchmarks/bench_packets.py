@@ -386,21 +386,20 @@ def onboard(data: Path) -> dict:
 
 
 def _run(args: list, tree: Path | None = None) -> tuple[float, float]:
-    """A whole voxtool command (of the revision checked out at `tree`, or this one): (seconds
-    from start to exit, its own peak memory in MiB)."""
+    """A whole voxtool command (of the revision checked out at `tree`, or the installed one):
+    (seconds from start to exit, its own peak memory in MiB). It runs in the temporary folder:
+    from the checkout, `python -m` would import this checkout's voxtool whatever PYTHONPATH says."""
     import os
 
     sys.path.insert(0, str(Path(__file__).parent))
-    from bench_octree import run_timed
+    from bench_octree import _LAUNCH
 
-    env = os.environ.copy()
-    if tree is not None:
-        os.environ["PYTHONPATH"] = str(tree)
-    try:
-        wall, rss, _ = run_timed([sys.executable, "-m", "voxtool.cli", *map(str, args), "--no-progress"])
-    finally:
-        os.environ.clear()
-        os.environ.update(env)
+    env = {**os.environ, "PYTHONPATH": str(tree)} if tree is not None else None
+    proc = subprocess.run([sys.executable, "-c", _LAUNCH, sys.executable, "-m", "voxtool.cli", *map(str, args),
+                           "--no-progress"], capture_output=True, text=True, env=env, cwd=tempfile.gettempdir())
+    wall, rss, code = json.loads(proc.stderr.strip().splitlines()[-1])
+    if code != 0:
+        raise SystemExit(f"voxtool {' '.join(map(str, args))} failed: {proc.stderr.strip().splitlines()[-2:]}")
     return wall, rss / 2**20
 
 
@@ -446,7 +445,11 @@ def disk(data: Path, log_mb: float, base: str | None = None) -> dict:
         tmp = Path(tmp)
         trees = [("now", None)]
         if base is not None:
-            trees.insert(0, (base, stack.enter_context(revision(base, tmp))))
+            from worktree import check_imports
+
+            tree = stack.enter_context(revision(base, tmp))
+            check_imports(tree, Path(tempfile.gettempdir()))
+            trees.insert(0, (base, tree))
         log = tmp / "r1.mcap"
         for name, tree in trees:
             commands = (("build", ["build", scans, "-o", tmp / "b.vxm"]),
@@ -458,7 +461,8 @@ def disk(data: Path, log_mb: float, base: str | None = None) -> dict:
                     _run(args, tree)  # compiles the revision's kernels
                 seconds, peak = _run(args, tree)
                 rows.append({"revision": name, "command": command, "seconds": round(seconds, 3),
-                             "peak_rss_mib": round(peak, 1), "log_mb": round(log.stat().st_size / 1e6, 2)})
+                             "peak_rss_mib": round(peak, 1),
+                             "log_mb": round(log.stat().st_size / 1e6, 2) if log.exists() else ""})
         _, messages = read_log(log)
         packets = list(messages)
         size = long_log(packets, tmp / "long.mcap", log_mb)
