@@ -53,6 +53,9 @@ def test_odometry_agrees_with_kittis_lidar_poses(sequences, tmp_path, seq):
     truth = relative(lidar_poses(sequences / seq, list(range(10))))
     odometry = [pose for _, pose in rows]
     trans, rot = errors(odometry, truth)
+    # the command says how far it is from the sequence's own poses: an ATE under the largest error here
+    against = report["against_source_poses"]
+    assert 0 < against["ate_max_m"] <= trans + 1e-6 and against["end_drift_percent_of_path"] < 3
     assert np.linalg.norm(truth[-1].translation) > 4.0  # the car moved
     assert trans < 0.15 and rot < 0.5, (trans, rot)
     camera_axes = relative([Pose(np.eye(3), p.translation) for p in lidar_poses(sequences / seq, list(range(10)))])
@@ -114,6 +117,14 @@ def test_clean_truth_scores_against_the_semantickitti_labels(sequences, tmp_path
     assert got["SA"] > 99 and got["DA"] > 80  # real movers in the first second of sequence 05
     text = cli("clean", seq, "-o", tmp_path / "s.pcd", "--truth", seq / "labels", "--no-progress")[1]
     assert "against --truth    SA" in text
+    # the same truth as one .npy of per-point labels (--labels' layout): the same scores
+    np.save(tmp_path / "truth.npy", truth.astype(np.uint8))
+    code, text, err = cli("clean", seq, "-o", tmp_path / "s.pcd", "--truth", tmp_path / "truth.npy", "--json",
+                          "--no-progress")
+    assert code == 0 and json.loads(text)["accuracy"] == got, err
+    np.save(tmp_path / "short.npy", truth[:-5])
+    code, _, err = cli("clean", seq, "-o", tmp_path / "t.pcd", "--truth", tmp_path / "short.npy", "--no-progress")
+    assert code == 2 and err.count("\n") == 1 and "labels for the" in err and not (tmp_path / "t.pcd").exists()
 
 
 @pytest.mark.parametrize("breakage, says", [
@@ -171,7 +182,7 @@ def test_a_real_drivers_dump_without_poses_is_warned_and_mapped_sharper_with_odo
     smeared = json.loads(text)["occupied_voxels"]
     code, text, err = cli("odometry", udacity_dump, "-o", tmp_path / "p.txt", "--json", "--no-progress")
     assert code == 0, err
-    assert json.loads(text)["path_m"] > 10
+    assert json.loads(text)["path_m"] > 10 and json.loads(text)["against_source_poses"] is None  # it has none
     code, text, err = cli("build", udacity_dump, "--poses", tmp_path / "p.txt", "-o", tmp_path / "m.vxm", "--json",
                           "--no-progress")
     assert code == 0 and "has a pose" not in err, err

@@ -402,15 +402,23 @@ def write_labels(path: str | os.PathLike, dynamic: np.ndarray) -> None:
 def clean_source(source: str | os.PathLike, options: SourceOptions, params: CleanParams,
                  output: str | os.PathLike | None = None, labels: str | os.PathLike | None = None,
                  threads: int = 0, progress: bool | None = None, dynamic: str | os.PathLike | None = None,
-                 png: str | os.PathLike | None = None, view: str = "top") -> dict[str, Any]:
+                 png: str | os.PathLike | None = None, view: str = "top",
+                 truth_npy: str | os.PathLike | None = None) -> dict[str, Any]:
     """`voxtool clean`: judge every point of `source`; write the static points (`output`), the
     labels, the removed points (`dynamic`) and/or a picture of what was removed (`png`: the
     removed points in red over the kept ones, seen from `view`)."""
     from voxtool.sources import resolve_origin
 
     check_outputs(output, labels, dynamic, png)
+    truth = None if truth_npy is None else read_truth_npy(truth_npy)  # a bad file fails before the work
     options = resolve_origin(source, options, params.resolution)
     cleaned = clean_stream(open_source(source, options), params, threads, progress)
+    if truth is not None:
+        if truth.shape[0] != cleaned.dynamic.shape[0]:
+            raise ParameterError(f"{truth_npy}: {truth.shape[0]:,} labels for the {cleaned.dynamic.shape[0]:,} points "
+                                 "judged (one per point, in scan order, as --labels writes them)")
+        cleaned.figures["accuracy"] = {**{k: round(v, 4) for k, v in accuracy(cleaned.dynamic, truth).items()},
+                                       "dynamic_points": int(truth.sum()), "static_points": int((~truth).sum())}
     t0 = time.perf_counter()
     if output is not None:
         write_cloud_points(output, cleaned.points[~cleaned.dynamic], options.origin, params.resolution)
@@ -430,6 +438,17 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
     figures["source"] = str(source)
     figures["origin"] = list(options.origin) if options.origin is not None else [0.0, 0.0, 0.0]
     return figures
+
+
+def read_truth_npy(path: str | os.PathLike) -> np.ndarray:
+    """Ground-truth labels of a .npy (one per judged point; non-zero: dynamic)."""
+    try:
+        labels = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise ParameterError(f"{path}: cannot be read as a .npy of labels ({err})") from err
+    if labels.ndim != 1 or labels.dtype.kind not in "biu":
+        raise ParameterError(f"{path}: labels must be one integer or bool per point, not {labels.dtype} {labels.shape}")
+    return labels.astype(bool)
 
 
 def accuracy(dynamic: np.ndarray, truth: np.ndarray) -> dict[str, float]:

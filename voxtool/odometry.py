@@ -75,12 +75,45 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
         raise ParameterError(f"{source}: {len(skipped)} scans could not be read (first: {skipped[0]['reason']}); "
                              "a pose file needs a pose for every scan")
     path_m = float(sum(np.linalg.norm(b[:3, 3] - a[:3, 3]) for a, b in zip(poses, poses[1:])))
+    against = against_source_poses(source, options, np.array([m[:3, 3] for m in poses]), path_m)
     return {"poses": np.array(poses), "stamps_ns": np.array(stamps, dtype=np.int64),
             "figures": {"source": str(source), "scans": len(poses), "points": points, "path_m": round(path_m, 6),
+                        "against_source_poses": against,
                         "params": {"max_range": params.max_range, "min_range": params.min_range,
                                    "voxel_size": params.voxel_size or params.max_range / 100.0},
                         "timings_s": {"total": round(seconds, 6),
                                       "per_scan_ms": round(1000 * seconds / len(poses), 3)}}}
+
+
+def rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) minimising |R a + t - b| over point pairs (Kabsch; no scale): the alignment under
+    which a trajectory's absolute error (ATE) is measured."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return r, cb - r @ ca
+
+
+def against_source_poses(source, options: SourceOptions, estimated: np.ndarray, path_m: float) -> dict | None:
+    """How far the odometry's sensor positions are from the source's own poses, where it has
+    them (a KITTI poses.txt, PCD VIEWPOINTs, a pose file): ATE RMSE and largest error after a
+    rigid alignment, and the end's drift in % of the path. None where the source has none."""
+    from voxtool.errors import SourceError
+
+    try:
+        truth = np.array([scan.origin for scan in open_source(source, replace(options, origin=None)).scans],
+                         dtype=np.float64)
+    except SourceError:
+        return None  # the source cannot pose its scans (what odometry is for)
+    if truth.shape[0] != estimated.shape[0] or truth.shape[0] < 3 or np.ptp(truth, axis=0).max() < 1e-6:
+        return None  # no poses (every scan at the origin), or not one per scan
+    r, t = rigid_fit(estimated, truth)
+    error = np.linalg.norm(estimated @ r.T + t - truth, axis=1)
+    # the end's drift with the start pinned: both trajectories from their first position
+    end = np.linalg.norm((estimated[-1] - estimated[0]) @ r.T - (truth[-1] - truth[0]))
+    return {"ate_rmse_m": round(float(np.sqrt(np.mean(error ** 2))), 6), "ate_max_m": round(float(error.max()), 6),
+            "end_drift_m": round(float(end), 6), "end_drift_percent_of_path": round(100 * float(end) / max(path_m, 1e-9), 3)}
 
 
 def pose_rows(poses: np.ndarray, stamps_ns: np.ndarray) -> tuple[str, list[str]]:

@@ -43,9 +43,10 @@ from voxtool.cli.common import (
                    "points lie in void voxels.")
 @click.option("--max-range", default=-1.0, show_default=True, type=float,
               help="Rays are cut here and give no evidence beyond; < 0 = unlimited.")
-@click.option("--truth", type=click.Path(path_type=Path, file_okay=False), metavar="LABELS_DIR",
+@click.option("--truth", type=click.Path(path_type=Path, exists=True), metavar="LABELS_DIR|TRUTH.npy",
               help="Score the result against ground truth: a folder of SemanticKITTI .label files, one per scan "
-                   "file (000123.label for 000123.bin/.pcd; moving classes 252-259 are dynamic): SA, DA, AA.")
+                   "file (000123.label for 000123.bin/.pcd; moving classes 252-259 are dynamic), or a .npy of "
+                   "one label per judged point in --labels' layout (non-zero: dynamic): SA, DA, AA.")
 @source_options
 @origin_option
 @threads_option
@@ -72,13 +73,14 @@ def clean(source, sample, output, labels, dynamic, png, view, resolution, sensor
 
     source = resolve_source(source, sample)
     options = with_origin(source_setup(kw), origin)
-    if truth is not None:
+    truth_npy = truth if truth is not None and truth.is_file() else None
+    if truth is not None and truth_npy is None:
         from dataclasses import replace
 
         options = replace(options, truth=str(truth))
     params = CleanParams(resolution=resolution, sensor_noise=sensor_noise, pose_error=pose_error, max_range=max_range,
                          group_share=group_share)
-    result = clean_source(source, options, params, output, labels, threads, progress, dynamic, png, view)
+    result = clean_source(source, options, params, output, labels, threads, progress, dynamic, png, view, truth_npy)
     t = result["timings_s"]
     removed = result["points_removed"]
     share = removed / max(result["points_in"], 1)

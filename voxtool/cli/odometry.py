@@ -55,4 +55,9 @@ def odometry(source, sample, output, max_range, min_range, voxel_size, topic, ba
             ("path", f"{figures['path_m']:.2f} m travelled (first scan's frame)"),
             ("format", "TUM (t x y z qx qy qz qw)" if kind == "tum" else "KITTI rows (the scans have no times)"),
             ("time", f"{t['total']:.2f} s, {t['per_scan_ms']:.1f} ms a scan")]
+    a = figures.get("against_source_poses")
+    if a:
+        rows.insert(2, ("vs the source's poses", f"ATE {a['ate_rmse_m']:.3f} m RMSE (max {a['ate_max_m']:.3f} m) after a "
+                                                 f"rigid fit; the end {a['end_drift_m']:.3f} m off "
+                                                 f"({a['end_drift_percent_of_path']:.2f} % of the path)"))
     emit(figures, as_json, rows, written=output)

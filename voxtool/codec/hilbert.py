@@ -196,15 +196,15 @@ def _lower_bound(a, lo, hi, value):
 
 
 @njit(cache=True, nogil=True)
-def relative_morton(x, y, z, bits):
-    """Morton codes (x in the lowest bit of each 3-bit digit) of cells of a cube of 2^bits."""
-    out = np.zeros(x.shape[0], dtype=np.int64)
-    for i in range(x.shape[0]):
+def relative_morton(rel, bits):
+    """Morton codes (x in the lowest bit of each 3-bit digit) of cells (N, 3) of a cube of 2^bits."""
+    out = np.zeros(rel.shape[0], dtype=np.int64)
+    for i in range(rel.shape[0]):
         c = 0
         for b in range(bits):
-            c |= ((x[i] >> b) & 1) << (3 * b)
-            c |= ((y[i] >> b) & 1) << (3 * b + 1)
-            c |= ((z[i] >> b) & 1) << (3 * b + 2)
+            c |= ((rel[i, 0] >> b) & 1) << (3 * b)
+            c |= ((rel[i, 1] >> b) & 1) << (3 * b + 1)
+            c |= ((rel[i, 2] >> b) & 1) << (3 * b + 2)
         out[i] = c
     return out
 
@@ -335,8 +335,9 @@ def ranks_of(rel: np.ndarray, dims) -> np.ndarray:
     """The curve ranks (int64) of cells given as (N, 3) coordinates inside a box anchored at 0."""
     dx, dy, dz = (int(d) for d in dims)
     bits = bits_for((dx, dy, dz))
-    rel = np.asarray(rel, dtype=np.int64)
-    codes, back = np.unique(relative_morton(rel[:, 0], rel[:, 1], rel[:, 2], bits), return_inverse=True)
+    # one array type whatever the count (a one-row slice would type as another layout, another kernel)
+    rel = np.ascontiguousarray(rel, dtype=np.int64).reshape(-1, 3)
+    codes, back = np.unique(relative_morton(rel, bits), return_inverse=True)
     ranks = np.empty(codes.shape[0], dtype=np.int64)
     octant, nxt = state_tables()
     _ranks(codes, dx, dy, dz, bits, octant, nxt, ranks)
