@@ -85,3 +85,31 @@ def test_the_running_latest_state_equals_a_sort_of_every_change(packets):
     codes, states = codes[order], states[order]
     last = np.append(codes[1:] != codes[:-1], True)
     assert np.array_equal(got_codes, codes[last]) and np.array_equal(got_states, states[last])
+
+
+@settings(max_examples=60)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 4000), st.integers(0, 3))
+def test_pruning_the_sorted_voxels_equals_the_octrees_pruned_leaves(seed, n, levels):
+    """prune_sorted (fusion's snapshot, no tree built) gives the leaves OctreeMap gives for the
+    same finest voxels: whole blocks of 2^levels voxels of one value merge up, mixed ones do not."""
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.kernels.sort import prune_sorted
+    from voxtool.keys import morton_encode
+    from voxtool.maps.octree import OctreeMap
+
+    rng = np.random.default_rng(seed)
+    side = 1 << levels
+    corners = rng.integers(0, 40, (max(1, n // side ** 3), 3)) * side + 32000
+    offsets = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    keys = (corners[:, None, :] + offsets[None]).reshape(-1, 3)
+    keys = np.concatenate([keys, rng.integers(32000, 32000 + 40 * side, (n // 4, 3))])
+    codes = np.unique(morton_encode(keys.astype(np.uint16)))
+    # one value per aligned block of side^3 voxels (whole blocks can merge), two values between blocks
+    values = np.where((codes >> (3 * levels)) % 5 != 0, np.float32(3.5), np.float32(-2.0)).astype(np.float32)
+    m = OctreeMap(MapParams(resolution=0.1), SensorModel())
+    m.load_state({"leaf_codes": codes, "leaf_depths": np.full(codes.shape[0], 16, np.uint8), "leaf_values": values})
+    reference = m.leaves()
+    got_codes, got_depths, got_values = prune_sorted(codes, values)
+    assert np.array_equal(got_codes, reference.codes) and np.array_equal(got_depths, reference.depths)
+    assert np.array_equal(got_values, reference.values)
+    assert levels == 0 or (reference.depths < 16).any()  # the blocks did merge: pruning was exercised

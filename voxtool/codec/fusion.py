@@ -236,13 +236,19 @@ def fused_leaves(result: FusionResult, sensor):
 def save_state_map(path, result: FusionResult, info: dict) -> None:
     from voxtool.config import MapParams, SensorModel
     from voxtool.io.mapfile import save_map
+    from voxtool.io.snapshot import ChunkedArrays
+    from voxtool.kernels.sort import prune_sorted
     from voxtool.maps.octree import OctreeMap
 
     sensor = SensorModel()
-    m = OctreeMap(MapParams(resolution=result.resolution or 0.1), sensor)
+    m = OctreeMap(MapParams(resolution=result.resolution or 0.1), sensor)  # its parameters; the leaves are below
     leaves = fused_leaves(result, sensor)
-    m.load_state({"leaf_codes": leaves.codes, "leaf_depths": leaves.depths, "leaf_values": leaves.values})
-    save_map(path, m, {**info, "origin": [float(v) for v in result.origin]})
+    # the octree's pruned leaves, straight from the sorted voxels: no tree is built to be saved
+    codes, depths, values = prune_sorted(leaves.codes, leaves.values)
+    del leaves
+    table = ChunkedArrays(("leaf_codes", "leaf_depths", "leaf_values"), ("int64", "uint8", "float32"),
+                          codes.shape[0], lambda: iter([(codes, depths, values)]))
+    save_map(path, m, {**info, "origin": [float(v) for v in result.origin]}, dict.fromkeys(table.names, table))
 
 
 def packets_of(path: Path) -> list[Packet]:

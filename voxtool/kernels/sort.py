@@ -104,3 +104,41 @@ def latest_per_code(codes, states):
         out_states[k] = packed[i] & 3
         k += 1
     return out_codes[:k], out_states[:k]
+
+
+@njit(cache=True, nogil=True)
+def prune_sorted(codes, values):
+    """OctoMap's pruned leaves of finest-level voxels (sorted unique Morton codes, their
+    log-odds): eight sibling leaves of one value become their parent, level by level. One pass
+    with a stack: siblings are consecutive in Morton order, so they meet on top of it."""
+    n = codes.shape[0]
+    out_codes = np.empty(n, dtype=np.int64)
+    out_depths = np.empty(n, dtype=np.uint8)
+    out_values = np.empty(n, dtype=np.float32)
+    top = 0
+    for i in range(n):
+        out_codes[top] = codes[i]
+        out_depths[top] = 16
+        out_values[top] = values[i]
+        top += 1
+        while top >= 8:
+            d = out_depths[top - 1]
+            if d == 0:
+                break
+            span = np.int64(1) << (3 * (16 - d))  # codes a node of depth d covers
+            first = out_codes[top - 8]
+            if first & (8 * span - 1) != 0:
+                break  # the eighth from the top is not the first child of a parent
+            merge = True
+            for k in range(8):
+                j = top - 8 + k
+                if out_depths[j] != d or out_values[j] != out_values[top - 1] or out_codes[j] != first + k * span:
+                    merge = False
+                    break
+            if not merge:
+                break
+            top -= 8
+            out_codes[top] = first
+            out_depths[top] = d - 1
+            top += 1
+    return out_codes[:top], out_depths[:top], out_values[:top]
