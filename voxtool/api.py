@@ -391,7 +391,7 @@ def export_scans(source: str | os.PathLike, output: str | os.PathLike, options: 
 def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False,
                progress: bool | None = False, ros2_only: bool = False, view: str | None = None,
                slice_z: float | None = None, crop: tuple | None = None,
-               z_range: tuple | None = None) -> dict:  # noqa: ARG001
+               z_range: tuple | None = None, above_ground: tuple | None = None) -> dict:  # noqa: ARG001
     """Write a map (.vxm, .bt or a sharded map) as .bt, .ply, .pcd, .png, .mcap or .pgm (a 2D
     grid + its nav2 YAML); returns what was written. A sharded map is read part by part, except
     for .mcap, .vxm and .pgm and with `crop` (whole). `view` and `slice_z` are for pictures
@@ -421,6 +421,12 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
         if kind not in TAKES_Z_RANGE:
             raise ParameterError(f"{output}: --z-range is for the 2D grid of a .pgm or .mcap")
         extra["z_range"] = tuple(z_range)
+    if above_ground is not None:
+        if kind not in TAKES_Z_RANGE:
+            raise ParameterError(f"{output}: --above-ground is for the 2D grid of a .pgm or .mcap")
+        if z_range is not None:
+            raise ParameterError("--z-range and --above-ground are two ways to choose heights: give one")
+        extra["above_ground"] = tuple(above_ground)
     if crop is not None:
         crop_keys(crop, 1.0)  # a bad box is refused before the map is read
     if Path(path).is_dir() and kind in STREAMED and crop is None and not map_origin(path):

@@ -32,12 +32,16 @@ from voxtool.cli.common import emit, handle_errors, origin_option, source_option
               help=".pgm/.mcap 2D grid: project the voxels whose centres lie at these heights (metres; default: all): "
                    "a cell is occupied where any of them is occupied, free where all known ones are free, unknown "
                    "elsewhere (octomap_server's projected_map).")
+@click.option("--above-ground", metavar="MIN,MAX",
+              help=".pgm/.mcap 2D grid: a cell is occupied where an occupied voxel lies MIN..MAX metres above the "
+                   "ground under it (the ground found in the map, docs/viewing.md), free where its ground is known "
+                   "and nothing there is occupied, unknown elsewhere: for sloped outdoor ground, instead of --z-range.")
 @source_options
 @origin_option
 @click.option("--json", "as_json", is_flag=True, help="Print what was written as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_range, as_json, progress,  # noqa: ARG001
+def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_range, above_ground, as_json, progress,  # noqa: ARG001
            **kw):
     """Export a map snapshot (.vxm) or an OctoMap .bt: .bt (OctoMap binary, the max-likelihood
     tree), .ply/.pcd (voxel centres), .png (a picture with colour bar, legend, scale bar and axes
@@ -68,9 +72,10 @@ def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_ran
         if len(box) != 6:
             raise ParameterError(f"--crop {crop}: give six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres)")
     from voxtool.grid import parse_z_range
+    from voxtool.ground import parse_above_ground
 
     written = export_map(map_file, output, include_free, progress, view=view, slice_z=slice_z, crop=box,
-                         z_range=parse_z_range(z_range))
+                         z_range=parse_z_range(z_range), above_ground=parse_above_ground(above_ground))
     rows = [(key.replace("_", " "), value_text(value)) for key, value in written.items() if value is not None]
     emit(written, as_json, rows, written=[output, Path(written["yaml"])] if "yaml" in written else output)
 

@@ -162,10 +162,11 @@ def write_vxm(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
 
 
 def write_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-               stamp_ns: int = 0, z_range: tuple | None = None, origin=None) -> dict:
+               stamp_ns: int = 0, z_range: tuple | None = None, origin=None, above_ground: tuple | None = None) -> dict:
     from voxtool.io.viewer_mcap import write_map_mcap
 
-    return write_map_mcap(path, leaves, resolution, threshold_log, include_free, stamp_ns, z_range, origin)
+    return write_map_mcap(path, leaves, resolution, threshold_log, include_free, stamp_ns, z_range, origin,
+                          above_ground)
 
 
 def grid_yaml_path(path: Path) -> Path:
@@ -174,7 +175,7 @@ def grid_yaml_path(path: Path) -> Path:
 
 
 def write_pgm(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-              z_range: tuple | None = None, origin=None) -> dict:
+              z_range: tuple | None = None, origin=None, above_ground: tuple | None = None) -> dict:
     """A 2D occupancy grid for nav2's map_server: the image and its YAML beside it (voxtool.grid).
     The YAML's origin is in the scans' frame (a map built about --origin is shifted back, as the
     .mcap's OccupancyGrid is), and says so; --z-range stays in the map's local heights."""
@@ -185,14 +186,15 @@ def write_pgm(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
         raise ParameterError(f"{path}: a grid always holds free, occupied and unknown cells; --free is for .ply/.pcd")
     yaml_path = grid_yaml_path(path)
     check_writable(yaml_path)
-    grid = project(leaves, resolution, threshold_log, z_range)
+    grid = project(leaves, resolution, threshold_log, z_range, above_ground)
     with atomic_writer(path) as handle:
         handle.write(pgm_bytes(grid))
     with atomic_writer(yaml_path) as handle:
         handle.write(map_yaml(grid, path.name, origin).encode())
     shift = (0.0, 0.0) if origin is None else (float(origin[0]), float(origin[1]))
     return {"format": "pgm", "yaml": str(yaml_path), "origin": [grid.origin[0] + shift[0], grid.origin[1] + shift[1]],
-            "z_range": list(z_range) if z_range else None, **grid.counts()}
+            "z_range": list(z_range) if z_range else None,
+            "above_ground": list(above_ground) if above_ground else None, **grid.counts()}
 
 
 # each writes the file and returns what it wrote (format, counts)

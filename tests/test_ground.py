@@ -1,0 +1,95 @@
+"""`export --above-ground MIN,MAX`: the ground found in the map (voxtool.ground) and the 2D grid of
+what stands on it, against a generated sloped terrain whose heights are known (brute force)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import cli
+from test_grid import read_nav2_map
+
+from voxtool.keys import TREE_MAX_VAL, morton_encode
+
+RES = 0.2
+SIDE = 150  # columns per side: 30 m
+BOXES = [(30, 40), (80, 100), (110, 20)]  # corner columns of 1 m x 1 m boxes, 1 m tall
+CANOPY = (60, 60)  # a 3 m x 3 m tree crown, 2.6-3.4 m above the ground, the ground under it seen
+
+
+def ground_key(x: np.ndarray) -> np.ndarray:
+    """The ground's z key at column x: a 15 % slope along x (4.5 m over the 30 m)."""
+    return TREE_MAX_VAL + np.floor(0.15 * x).astype(np.int64)
+
+
+@pytest.fixture(scope="module")
+def terrain(tmp_path_factory):
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.io.mapfile import save_map
+    from voxtool.maps.octree import OctreeMap
+
+    xs, ys = np.meshgrid(np.arange(SIDE), np.arange(SIDE), indexing="ij")
+    xs, ys = xs.ravel(), ys.ravel()
+    box = np.zeros(xs.shape, bool)
+    for bx, by in BOXES:
+        box |= (xs >= bx) & (xs < bx + 5) & (ys >= by) & (ys < by + 5)
+    keys = [np.c_[xs[~box], ys[~box], ground_key(xs[~box])]]  # no ground seen under a box
+    for k in range(1, 6):  # the boxes: 1 m above the ground, from the voxel above it
+        keys.append(np.c_[xs[box], ys[box], ground_key(xs[box]) + k])
+    crown = (xs >= CANOPY[0]) & (xs < CANOPY[0] + 15) & (ys >= CANOPY[1]) & (ys < CANOPY[1] + 15)
+    for k in range(13, 18):
+        keys.append(np.c_[xs[crown], ys[crown], ground_key(xs[crown]) + k])
+    keys = np.concatenate(keys) + np.array([TREE_MAX_VAL, TREE_MAX_VAL, 0])
+    occupied = np.unique(morton_encode(keys.astype(np.uint16)))
+    m = OctreeMap(MapParams(resolution=RES), SensorModel())
+    m.load_state({"leaf_codes": occupied, "leaf_depths": np.full(occupied.shape[0], 16, np.uint8),
+                  "leaf_values": np.full(occupied.shape[0], np.float32(2.0))})
+    path = tmp_path_factory.mktemp("terrain") / "terrain.vxm"
+    save_map(path, m, {"source": "generated terrain"})
+    return path, xs, ys, box, crown
+
+
+def test_above_ground_grid_equals_the_terrain_truth(terrain, tmp_path):
+    """Occupied exactly where a box stands (0.3-2 m above the ground under it); free on the slope
+    and under the tree crown (above 2 m); unknown nowhere on the terrain."""
+    path, xs, ys, box, crown = terrain
+    code, _, err = cli("export", path, "-o", tmp_path / "g.pgm", "--above-ground", "0.3,2.0")
+    assert code == 0, err
+    cells, res, origin = read_nav2_map(tmp_path / "g.yaml")
+    assert res == pytest.approx(RES) and origin[:2] == pytest.approx([0.0, 0.0])
+    assert cells.shape == (SIDE, SIDE)
+    got = cells[ys, xs]  # row: y from the bottom, column: x
+    expected = np.where(box, 100, 0)
+    assert np.array_equal(got, expected), (np.sum(got != expected), np.unique(got[crown]))
+    # the map .mcap's OccupancyGrid, read by rosbags, is the same grid
+    from test_viewer_mcap import read_ros2
+
+    assert cli("export", path, "-o", tmp_path / "g.mcap", "--above-ground", "0.3,2.0")[0] == 0
+    grid = read_ros2(tmp_path / "g.mcap")["/projected_map"][2]
+    data = np.asarray(grid.data, dtype=np.int8).reshape(grid.info.height, grid.info.width)
+    assert np.array_equal(data, cells.astype(np.int8))
+
+
+def test_fixed_heights_fail_on_the_slope_where_height_above_ground_does_not(terrain, tmp_path):
+    """The same band as --z-range 0.3,2.0 (metres of the map's frame): the slope itself comes out
+    occupied uphill and unknown downhill, which is why the ground is needed."""
+    path, xs, ys, box, _ = terrain
+    code, _, err = cli("export", path, "-o", tmp_path / "z.pgm", "--z-range", "0.3,2.0")
+    assert code == 0, err
+    cells, _, origin = read_nav2_map(tmp_path / "z.yaml")
+    x0 = int(round(origin[0] / RES))
+    uphill = (xs > 20) & (xs < 60) & ~box
+    col = xs[uphill] - x0
+    inside = (col >= 0) & (col < cells.shape[1])
+    assert (cells[ys[uphill][inside], col[inside]] == 100).mean() > 0.5  # the ground itself is an obstacle there
+
+
+def test_bad_above_ground_is_one_line(terrain, tmp_path):
+    path = terrain[0]
+    for args, says in ((["--above-ground", "2,1"], "need 0 <= MIN <= MAX"),
+                       (["--above-ground", "x"], "give two numbers MIN,MAX"),
+                       (["--above-ground", "0.3,2", "--z-range", "0,1"], "give one")):
+        code, _, err = cli("export", path, "-o", tmp_path / "g.pgm", *args)
+        assert code == 2 and says in err and err.count("\n") == 1, err
+        assert not (tmp_path / "g.pgm").exists()
+    code, _, err = cli("export", path, "-o", tmp_path / "g.ply", "--above-ground", "0.3,2")
+    assert code == 2 and "--above-ground is for the 2D grid" in err
