@@ -69,14 +69,16 @@ class FusionResult:
 
 class LatestStates:
     """Each voxel's latest state over packets added in order, kept as a sorted set and merged
-    with batches of packets (a batch at least half the set: amortised linear), so memory is the
-    set plus a batch, not every change of every packet."""
+    with batches of packets (a batch at least half the set: amortised linear). The set lives in
+    buffers with room to grow, merged into in place, so memory is the set, its spare room and
+    a batch, not every change of every packet."""
 
     MIN_BATCH = 1 << 20
 
     def __init__(self) -> None:
-        self.codes = np.zeros(0, np.int64)
-        self.states = np.zeros(0, np.uint8)
+        self._set_codes = np.zeros(0, np.int64)
+        self._set_states = np.zeros(0, np.uint8)
+        self.size = 0
         self._codes: list[np.ndarray] = []
         self._states: list[np.ndarray] = []
         self._pending = 0
@@ -85,21 +87,29 @@ class LatestStates:
         self._codes.append(codes)
         self._states.append(states)
         self._pending += codes.shape[0]
-        if self._pending >= max(self.MIN_BATCH, self.codes.shape[0] // 2):
+        if self._pending >= max(self.MIN_BATCH, self.size // 2):
             self._merge()
 
     def _merge(self) -> None:
-        from voxtool.kernels.sort import latest_per_code, merge_latest_sorted
+        from voxtool.kernels.sort import latest_per_code, merge_latest_into
 
         if not self._codes:
             return
-        codes, states = latest_per_code(np.concatenate(self._codes), np.concatenate(self._states))
-        self._codes, self._states, self._pending = [], [], 0
-        self.codes, self.states = merge_latest_sorted(self.codes, self.states, codes, states)
+        codes, states = np.concatenate(self._codes), np.concatenate(self._states)
+        self._codes, self._states, self._pending = [], [], 0  # the packets' arrays go as soon as they are joined
+        codes, states = latest_per_code(codes, states)
+        need = self.size + codes.shape[0]
+        if need > self._set_codes.shape[0]:  # more room: half again what is needed
+            room = need + need // 2
+            grown_codes, grown_states = np.empty(room, np.int64), np.empty(room, np.uint8)
+            grown_codes[:self.size] = self._set_codes[:self.size]
+            grown_states[:self.size] = self._set_states[:self.size]
+            self._set_codes, self._set_states = grown_codes, grown_states
+        self.size = merge_latest_into(self._set_codes, self._set_states, self.size, codes, states)
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
         self._merge()
-        return self.codes, self.states
+        return self._set_codes[:self.size], self._set_states[:self.size]
 
 
 def _log_packets(path: Path, extrinsics: dict | None = None):

@@ -56,54 +56,26 @@ def sort_codes(a, scratch, first_bit=0):
 
 
 @njit(cache=True, nogil=True)
-def merge_latest_sorted(codes_a, states_a, codes_b, states_b):
-    """The union of two sorted, unique change sets, b's state where both hold a voxel: one pass."""
-    out_codes = np.empty(codes_a.shape[0] + codes_b.shape[0], dtype=np.int64)
-    out_states = np.empty(out_codes.shape[0], dtype=np.uint8)
-    i = j = k = 0
-    while i < codes_a.shape[0] and j < codes_b.shape[0]:
-        if codes_a[i] < codes_b[j]:
-            out_codes[k] = codes_a[i]
-            out_states[k] = states_a[i]
-            i += 1
-        else:
-            if codes_a[i] == codes_b[j]:
-                i += 1
-            out_codes[k] = codes_b[j]
-            out_states[k] = states_b[j]
-            j += 1
-        k += 1
-    while i < codes_a.shape[0]:
-        out_codes[k] = codes_a[i]
-        out_states[k] = states_a[i]
-        i += 1
-        k += 1
-    while j < codes_b.shape[0]:
-        out_codes[k] = codes_b[j]
-        out_states[k] = states_b[j]
-        j += 1
-        k += 1
-    return out_codes[:k], out_states[:k]
-
-
-@njit(cache=True, nogil=True)
 def latest_per_code(codes, states):
-    """(sorted unique codes, the state each had last) of changes listed in the order they came."""
+    """(sorted unique codes, the state each had last) of changes listed in the order they came.
+    The codes are sorted with their states packed below them and de-duplicated in place."""
     n = codes.shape[0]
     packed = np.empty(n, dtype=np.int64)
     for i in range(n):
         packed[i] = (codes[i] << 2) | states[i]  # states are 2-bit codes; the sort keeps their order
     sort_codes(packed, np.empty(n, dtype=np.int64), 2)
-    out_codes = np.empty(n, dtype=np.int64)
-    out_states = np.empty(n, dtype=np.uint8)
     k = 0
     for i in range(n):
         if i + 1 < n and (packed[i + 1] >> 2) == (packed[i] >> 2):
             continue  # a later change of the same voxel follows
-        out_codes[k] = packed[i] >> 2
-        out_states[k] = packed[i] & 3
+        packed[k] = packed[i]  # k <= i: in place
         k += 1
-    return out_codes[:k], out_states[:k]
+    out_codes = np.empty(k, dtype=np.int64)
+    out_states = np.empty(k, dtype=np.uint8)
+    for i in range(k):
+        out_codes[i] = packed[i] >> 2
+        out_states[i] = packed[i] & 3
+    return out_codes, out_states
 
 
 @njit(cache=True, nogil=True)
@@ -142,3 +114,32 @@ def prune_sorted(codes, values):
             out_depths[top] = d - 1
             top += 1
     return out_codes[:top], out_depths[:top], out_values[:top]
+
+
+@njit(cache=True, nogil=True)
+def merge_latest_into(codes, states, n, codes_b, states_b):
+    """The union of a sorted, unique change set (the first n entries of `codes`/`states`) and
+    another (b), b's state where both hold a voxel, written in place: the buffers hold
+    at least n + len(b) entries. Merged from the back (the largest first, into the free end), then
+    moved to the front where duplicates left a gap. Returns the merged count."""
+    i, j, k = n - 1, codes_b.shape[0] - 1, n + codes_b.shape[0] - 1
+    while j >= 0:
+        if i >= 0 and codes[i] > codes_b[j]:
+            codes[k] = codes[i]
+            states[k] = states[i]
+            i -= 1
+        else:
+            if i >= 0 and codes[i] == codes_b[j]:
+                i -= 1  # b's state wins: a's entry is dropped
+            codes[k] = codes_b[j]
+            states[k] = states_b[j]
+            j -= 1
+        k -= 1
+    # entries 0..i stay where they are; the merged tail starts at k + 1, after a gap of k - i
+    gap = k - i
+    total = n + codes_b.shape[0] - gap
+    if gap > 0:
+        for t in range(i + 1, total):
+            codes[t] = codes[t + gap]
+            states[t] = states[t + gap]
+    return total
