@@ -17,7 +17,7 @@ from voxtool.codec.log import read_log
 from voxtool.codec.packet import OCCUPIED, UNKNOWN, Packet, decode_packet
 from voxtool.errors import FormatError, ParameterError
 from voxtool.geometry import Pose
-from voxtool.keys import coords_to_keys, keys_to_coords, morton_encode
+from voxtool.keys import coords_to_keys, keys_to_coords
 from voxtool.sources.poses import UNIT_TOLERANCE
 
 
@@ -99,8 +99,8 @@ class LatestStates:
         self._codes, self._states, self._pending = [], [], 0  # the packets' arrays go as soon as they are joined
         codes, states = latest_per_code(codes, states)
         need = self.size + codes.shape[0]
-        if need > self._set_codes.shape[0]:  # more room: half again what is needed
-            room = need + need // 2
+        if need > self._set_codes.shape[0]:  # more room: an eighth more than is needed (growth copies the set once)
+            room = need + need // 8
             grown_codes, grown_states = np.empty(room, np.int64), np.empty(room, np.uint8)
             grown_codes[:self.size] = self._set_codes[:self.size]
             grown_states[:self.size] = self._set_states[:self.size]
@@ -108,6 +108,7 @@ class LatestStates:
         self.size = merge_latest_into(self._set_codes, self._set_states, self.size, codes, states)
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
+        """The set (views of its buffers)."""
         self._merge()
         return self._set_codes[:self.size], self._set_states[:self.size]
 
@@ -128,7 +129,8 @@ def _log_packets(path: Path, extrinsics: dict | None = None):
         from voxtool.parallel import ordered_map, usable_cores
 
         last: dict[str, int] = {}
-        for p, codes in ordered_map(decode, messages, usable_cores()):
+        # far enough ahead that the workers go on decoding while this thread merges a batch
+        for p, codes in ordered_map(decode, messages, usable_cores(), ahead=64):
             if p.stamp_ns < last.get(p.robot, -1):
                 raise FormatError(f"{path}: packet {p.seq} of robot '{p.robot}' (stamp {p.stamp_ns}) is older than the "
                                   "one before it")
@@ -202,7 +204,7 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
         missing = sorted(set(range(seqs[0], seqs[-1] + 1)) - set(seqs)) if seqs else []
         info["gaps"] = missing
     codes, states = latest.result()
-    known = states != UNKNOWN
+    known = states != UNKNOWN  # a voxel last seen unknown is not in the fused map; copies at their size
     return FusionResult(codes[known], states[known], resolution or 0.0, rank, robots,
                         origin=origin or (0.0, 0.0, 0.0))
 
@@ -229,10 +231,15 @@ def _warn_clocks_apart(robots: dict[str, dict]) -> None:
 
 def _fused_codes(p: Packet, extrinsics: dict) -> np.ndarray:
     """A packet's voxels as Morton codes in the fused frame (its robot's extrinsic applied)."""
+    from voxtool.kernels.morton import key_codes
+
     keys = p.keys
     if p.robot in extrinsics:
         keys = extrinsics[p.robot].apply(keys, p.resolution)
-    return morton_encode(keys)
+    keys = np.ascontiguousarray(keys, dtype=np.uint16)  # one kernel type (keys are checked 0..65535)
+    codes = np.empty(keys.shape[0], dtype=np.int64)
+    key_codes(keys, codes)  # a pass in a compiled loop, not numpy's five over the array
+    return codes
 
 
 def fused_leaves(result: FusionResult, sensor):
@@ -252,12 +259,13 @@ def save_state_map(path, result: FusionResult, info: dict) -> None:
 
     sensor = SensorModel()
     m = OctreeMap(MapParams(resolution=result.resolution or 0.1), sensor)  # its parameters; the leaves are below
-    leaves = fused_leaves(result, sensor)
-    # the octree's pruned leaves, straight from the sorted voxels: no tree is built to be saved
-    codes, depths, values = prune_sorted(leaves.codes, leaves.values)
-    del leaves
+    # the octree's pruned leaves, straight from the sorted voxels (pruned by state: each state is
+    # one log-odds value) and no tree built to be saved; the log-odds made for the leaves alone
+    codes, depths, states = prune_sorted(result.codes, result.states)
+    values = np.where(states == OCCUPIED, np.float32(sensor.clamp_max_log), np.float32(sensor.clamp_min_log))
+    del states
     table = ChunkedArrays(("leaf_codes", "leaf_depths", "leaf_values"), ("int64", "uint8", "float32"),
-                          codes.shape[0], lambda: iter([(codes, depths, values)]))
+                          codes.shape[0], lambda: iter([(codes, depths, values.astype(np.float32, copy=False))]))
     save_map(path, m, {**info, "origin": [float(v) for v in result.origin]}, dict.fromkeys(table.names, table))
 
 

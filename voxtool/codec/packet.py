@@ -384,8 +384,10 @@ def decode_packet(blob: bytes, where: str = "packet", ordered: bool = True) -> P
             states = grid[idx_changed]
         if kind == KIND_DELTA and idx_changed.shape[0] != count:
             raise FormatError(f"{where}: {idx_changed.shape[0]} changed cells, header declares {count}")
-        idx = idx_changed
-        keys = np.stack([idx % dims_a[0], (idx // dims_a[0]) % dims_a[1], idx // (dims_a[0] * dims_a[1])], axis=1) + lo_a
+        from voxtool.kernels.cells2bit import nested_keys
+
+        keys = np.empty((idx_changed.shape[0], 3), dtype=np.uint16)
+        nested_keys(np.ascontiguousarray(idx_changed, dtype=np.int64), int(dims_a[0]), int(dims_a[1]), lo_a, keys)
     elif scheme == "racer":
         width = address_width(dims_a)
         a = np.zeros((count, 8), dtype=np.uint8)
@@ -404,7 +406,7 @@ def decode_packet(blob: bytes, where: str = "packet", ordered: bool = True) -> P
     if np.any(states > UNKNOWN):
         raise FormatError(f"{where}: invalid voxel state")
     return Packet(name.rstrip(b"\0").decode(errors="replace"), seq, stamp, scheme, codec, kind, res, tuple(origin),
-                  tuple(lo), tuple(dims), count, raw_size, stored_size, keys.astype(np.uint16), states, frames)
+                  tuple(lo), tuple(dims), count, raw_size, stored_size, keys.astype(np.uint16, copy=False), states, frames)
 
 
 def _read_frames(raw: bytes, count: int, version: int, where: str) -> list[tuple[int, np.ndarray]]:

@@ -49,3 +49,14 @@ def scan(data, candidates, cells, background, out_ranks, out_codes):
                 out_codes[m] = c
                 m += 1
     return m
+
+
+@njit(cache=True, nogil=True)
+def nested_keys(idx, dx, dy, lo, out):
+    """out[i]: the key (uint16 x, y, z) of the cell at nested index idx[i] of a box of dx x dy
+    columns whose first key is lo."""
+    for i in range(idx.shape[0]):
+        v = idx[i]
+        out[i, 0] = lo[0] + v % dx
+        out[i, 1] = lo[1] + (v // dx) % dy
+        out[i, 2] = lo[2] + v // (dx * dy)

@@ -55,3 +55,10 @@ def point_codes(points, resolution, out):
             return i
         out[i] = morton3(np.int64(kx), np.int64(ky), np.int64(kz))
     return -1
+
+
+@njit(cache=True, nogil=True)
+def key_codes(keys, out):
+    """out[i]: the Morton code of keys[i] ((N, 3) uint16): keys.morton_encode in one pass."""
+    for i in range(keys.shape[0]):
+        out[i] = morton3(keys[i, 0], keys[i, 1], keys[i, 2])

@@ -86,7 +86,7 @@ def prune_sorted(codes, values):
     n = codes.shape[0]
     out_codes = np.empty(n, dtype=np.int64)
     out_depths = np.empty(n, dtype=np.uint8)
-    out_values = np.empty(n, dtype=np.float32)
+    out_values = np.empty_like(values)  # log-odds, or 2-bit states: anything compared for equality
     top = 0
     for i in range(n):
         out_codes[top] = codes[i]
