@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from voxtool.codec.log import PacketHeader, read_log
-from voxtool.codec.packet import HEADER, address_width, decode_packet
+from voxtool.codec.packet import HEADER, decode_packet
 
 
 def log_stats(path: str | Path, progress: bool | None = False, series: dict | None = None) -> dict:
@@ -90,7 +90,8 @@ def racer_payload_bytes(changed: int, cells: int) -> int:
     """RACER's payload for `changed` voxels of a box of `cells`: an address of the fewest whole
     bytes that index the box, and a 2-bit state, per voxel (the paper's Fig. 5 rule); addressed in
     the packet's own box, the least RACER could spend (it addresses the whole map)."""
-    return changed * address_width((max(cells, 1), 1, 1)) + (changed + 3) // 4
+    width = max(1, (max(cells - 1, 1).bit_length() + 7) // 8)  # address_width's rule, on one int (per packet)
+    return changed * width + (changed + 3) // 4
 
 
 def _occupied_voxels(h: PacketHeader, path: Path) -> int:
