@@ -93,3 +93,28 @@ def test_bad_above_ground_is_one_line(terrain, tmp_path):
         assert not (tmp_path / "g.pgm").exists()
     code, _, err = cli("export", path, "-o", tmp_path / "g.ply", "--above-ground", "0.3,2")
     assert code == 2 and "--above-ground is for the 2D grid" in err
+
+
+def test_a_top_view_coloured_by_height_above_the_ground(terrain, tmp_path):
+    """Colours by height above the ground: every slope pixel shows 0.1 m (its ground voxel's
+    centre) though the slope climbs 4.5 m, the crown 3.5 m, the boxes 1.1 m within a voxel (their
+    ground is filled from around); `export` writes it."""
+    from voxtool.api import load_leaves
+    from voxtool.io.picture import picture
+
+    path, xs, ys, box, crown = terrain
+    leaves, res, thr, _ = load_leaves(path)
+    raster = picture(leaves, res, thr, above_ground=(0.0, 4.0))
+    above = raster.values_m(res)
+    assert raster.shift == 0 and above.shape == (SIDE, SIDE)
+    got = above[ys, xs]  # rows from the bottom (y), columns x
+    slope = ~box & ~crown
+    assert np.allclose(got[slope], 0.1) and np.allclose(got[crown], 3.5)
+    # no ground is seen under a box: filled from the slope around it, within a voxel of the truth
+    assert np.all(np.abs(got[box] - 1.1) <= RES + 1e-9)
+    plain = picture(leaves, res, thr).values_m(res)[ys, xs]
+    assert np.ptp(plain[slope]) > 4.0  # the same pixels by absolute height: the slope's 4.5 m
+    code, text, err = cli("export", path, "-o", tmp_path / "g.png", "--above-ground", "0,4", "--json")
+    assert code == 0 and "height above the ground" in __import__("json").loads(text)["caption"], err
+    code, _, err = cli("export", path, "-o", tmp_path / "s.png", "--above-ground", "0,4", "--view", "side")
+    assert code == 2 and "top view" in err

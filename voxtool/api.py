@@ -422,16 +422,16 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
             raise ParameterError(f"{output}: --z-range is for the 2D grid of a .pgm or .mcap")
         extra["z_range"] = tuple(z_range)
     if above_ground is not None:
-        if kind not in TAKES_Z_RANGE:
-            raise ParameterError(f"{output}: --above-ground is for the 2D grid of a .pgm or .mcap")
+        if kind not in (*TAKES_Z_RANGE, ".png"):
+            raise ParameterError(f"{output}: --above-ground is for the 2D grid of a .pgm or .mcap, or a .png's colours")
         if z_range is not None:
             raise ParameterError("--z-range and --above-ground are two ways to choose heights: give one")
         extra["above_ground"] = tuple(above_ground)
     if crop is not None:
         crop_keys(crop, 1.0)  # a bad box is refused before the map is read
-    if Path(path).is_dir() and kind in STREAMED and crop is None and not map_origin(path):
+    if Path(path).is_dir() and kind in STREAMED and crop is None and not map_origin(path) and above_ground is None:
         return export_sharded(path, output, include_free, progress, **extra)  # part by part
-    if kind == ".png" and crop is None and Path(path).suffix.lower() == ".vxm":
+    if kind == ".png" and crop is None and Path(path).suffix.lower() == ".vxm" and above_ground is None:
         from voxtool.io.mapfile import stream_leaves
 
         streamed = stream_leaves(path)

@@ -28,6 +28,7 @@ FREE_RGB = (0.80, 0.90, 0.80)
 UNKNOWN_RGB = (0.93, 0.93, 0.93)
 SLICE_RGB = (0.80, 0.15, 0.10)
 COLORMAP = "viridis"
+NO_GROUND_RGB = (0.55, 0.55, 0.55)  # an occupied pixel coloured by height above a ground that is not known
 MAX_SIDE = 1600  # raster pixels on the longer side: 2^k voxels per pixel above that
 
 
@@ -86,10 +87,23 @@ class Raster:
                     leaves.values, np.float32(threshold_log))
 
     def values_m(self, resolution: float) -> np.ndarray:
-        """The colour coordinate of occupied pixels in metres (NaN elsewhere), rows from the bottom."""
+        """The colour coordinate of occupied pixels in metres (NaN elsewhere), rows from the bottom:
+        with a ground (`above_ground`), the top's height above the ground under the pixel's
+        centre column (NaN where that ground is unknown)."""
         _, _, _, from_plus = VIEWS[self.view]
         key = np.where(self.state == OCCUPIED, self.depth if from_plus else -self.depth, np.nan)
-        return keys_to_coords(key, resolution).reshape(self.height, self.width)
+        values = keys_to_coords(key, resolution).reshape(self.height, self.width)
+        ground = getattr(self, "ground", None)
+        if ground is None:
+            return values
+        half = (1 << self.shift) // 2  # the pixel's centre column
+        cols = self.kmin[0] + (np.arange(self.width) << self.shift) + half - ground.x0
+        rows = self.kmin[1] + (np.arange(self.height) << self.shift) + half - ground.y0
+        inside_c = (cols >= 0) & (cols < ground.height.shape[1])
+        inside_r = (rows >= 0) & (rows < ground.height.shape[0])
+        under = np.full((self.height, self.width), np.nan)
+        under[np.ix_(inside_r, inside_c)] = ground.height[np.ix_(rows[inside_r], cols[inside_c])]
+        return values - under
 
     def metres(self, resolution: float) -> tuple[float, float, float, float]:
         """Extent (left, right, bottom, top) of the picture in metres (voxel edges)."""
@@ -128,8 +142,16 @@ def figure(raster: Raster, resolution: float, label: str):
     occupied = state == OCCUPIED
     values = raster.values_m(resolution)
     norm = None
+    above = getattr(raster, "ground", None) is not None
     if raster.layer is not None:
         rgb[occupied] = SLICE_RGB
+    elif above and occupied.any():
+        # height above the ground on the band's scale (clipped); no ground known: the slice grey
+        lo, hi = raster.band
+        norm = Normalize(lo, hi + 1e-9)
+        known = occupied & ~np.isnan(values)
+        rgb[known] = colormaps[COLORMAP](norm(np.clip(values[known], lo, hi)))[:, :3]
+        rgb[occupied & np.isnan(values)] = NO_GROUND_RGB
     elif occupied.any():
         norm = Normalize(float(np.nanmin(values)), float(np.nanmax(values)) + 1e-9)
         rgb[occupied] = colormaps[COLORMAP](norm(values[occupied]))[:, :3]
@@ -159,6 +181,8 @@ def figure(raster: Raster, resolution: float, label: str):
 
         what = "height of the highest occupied voxel" if raster.view == "top" else \
             f"{AXIS[a]} of the nearest occupied voxel"
+        if above:
+            what = "height of the highest occupied voxel above the ground under it (grey: no ground known)"
         fig.colorbar(ScalarMappable(norm, colormaps[COLORMAP]), ax=ax, shrink=0.8, label=f"{what} (m)",
                      location="bottom" if flat else "right")
     length = _nice_length(right - left)
@@ -205,14 +229,23 @@ def figures(raster: Raster) -> dict:
 
 
 def picture(leaves: Leaves, resolution: float, threshold_log: float, view: str = "top",
-            slice_z: float | None = None) -> Raster:
+            slice_z: float | None = None, above_ground: tuple[float, float] | None = None) -> Raster:
+    """The raster of a map's leaves; `above_ground` (MIN, MAX metres): a top view coloured by
+    height above the ground found in the map (voxtool.ground), on that scale."""
     check_options(view, slice_z)
+    if above_ground is not None and (view != "top" or slice_z is not None):
+        raise ParameterError("--above-ground colours a top view by height above the ground: not with --view or --slice")
     bounds = key_bounds(leaves)
     if bounds is None:
         raise ParameterError("the map is empty: there is nothing to draw")
     layer = slice_layer(slice_z, resolution) if slice_z is not None else None
     raster = Raster.covering(view, *bounds, layer)
     raster.add(leaves, threshold_log)
+    if above_ground is not None:
+        from voxtool.ground import ground_of, occupied_keys
+
+        raster.ground = ground_of(occupied_keys(leaves, threshold_log), resolution)
+        raster.band = above_ground
     return raster
 
 
@@ -244,8 +277,18 @@ def roof_of(tops: np.ndarray, half_voxel: float = 0.0) -> float | None:
 
 
 def write_png(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-              view: str = "top", slice_z: float | None = None, label: str = "", below_roof: bool = True) -> dict:
-    """A picture of the map's leaves (write_leaf_sets for one set)."""
+              view: str = "top", slice_z: float | None = None, label: str = "", below_roof: bool = True,
+              above_ground: tuple[float, float] | None = None) -> dict:
+    """A picture of the map's leaves (write_leaf_sets for one set); `above_ground`: coloured by
+    height above the ground (picture())."""
+    if above_ground is not None:
+        if include_free:
+            raise ParameterError(f"{path}: a picture always shows free space (legend: free); --free is for .ply/.pcd")
+        raster = picture(leaves, resolution, threshold_log, view, slice_z, above_ground)
+        caption = (label or path.stem) + f" · coloured by height above the ground, {above_ground[0]:g} to {above_ground[1]:g} m"
+        width, height = save(figure(raster, resolution, caption), path)
+        return {**figures(raster), "width": width, "height": height, "caption": caption,
+                "above_ground": list(above_ground)}
     return write_leaf_sets(path, lambda: [(leaves, threshold_log)], resolution, include_free, view, slice_z, label,
                            below_roof)
 
