@@ -118,3 +118,37 @@ def test_a_top_view_coloured_by_height_above_the_ground(terrain, tmp_path):
     assert code == 0 and "height above the ground" in __import__("json").loads(text)["caption"], err
     code, _, err = cli("export", path, "-o", tmp_path / "s.png", "--above-ground", "0,4", "--view", "side")
     assert code == 2 and "top view" in err
+
+
+def test_clean_pictures_colour_by_height_above_the_ground():
+    """clean --png --above-ground: on a 15 % slope every ground point gets one colour (it is at
+    the ground) while a box on it gets another; by absolute height the slope spans the scale."""
+    from voxtool.plots import clean_figure
+
+    rng = np.random.default_rng(5)
+    ground = rng.uniform(0, 30, (40_000, 2))
+    ground = np.c_[ground, 0.15 * ground[:, 0] + 0.05]
+    box = np.c_[rng.uniform(10, 12, (3000, 2)), np.zeros(3000)]
+    box[:, 2] = 0.15 * box[:, 0] + rng.uniform(0.3, 1.5, 3000)  # standing on the slope, up to 1.5 m
+    points = np.concatenate([ground, box]).astype(np.float32)
+    dynamic = np.zeros(len(points), bool)
+
+    def after_colours(**kw):
+        fig, _ = clean_figure(points, dynamic, "slope", **kw)
+        image = fig.axes[1].images[0].get_array()
+        lit = image[..., 3] > 0
+        return image, lit
+
+    def region(image, lit, x0, x1):  # pixel columns of x in [x0, x1) over the 30 m extent
+        cols = image.shape[1]
+        mask = np.zeros_like(lit)
+        mask[:, int(x0 / 30 * cols):int(x1 / 30 * cols)] = True
+        return image[mask & lit][:, :3]
+
+    image, lit = after_colours(above_ground=(0.0, 2.0), resolution=0.2)
+    low, high = region(image, lit, 1, 8), region(image, lit, 20, 29)
+    assert np.abs(low.mean(axis=0) - high.mean(axis=0)).max() < 0.05  # the slope: one colour, low or high
+    plain, plain_lit = after_colours()
+    assert np.abs(region(plain, plain_lit, 1, 8).mean(axis=0) - region(plain, plain_lit, 20, 29).mean(axis=0)).max() > 0.2
+    code, _, err = cli("clean", "--sample", "--png", "x.png", "--above-ground", "0,2", "--view", "side")
+    assert code == 2 and "top view" in err

@@ -403,7 +403,7 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
                  output: str | os.PathLike | None = None, labels: str | os.PathLike | None = None,
                  threads: int = 0, progress: bool | None = None, dynamic: str | os.PathLike | None = None,
                  png: str | os.PathLike | None = None, view: str = "top",
-                 truth_npy: str | os.PathLike | None = None) -> dict[str, Any]:
+                 truth_npy: str | os.PathLike | None = None, above_ground: tuple | None = None) -> dict[str, Any]:
     """`voxtool clean`: judge every point of `source`; write the static points (`output`), the
     labels, the removed points (`dynamic`) and/or a picture of what was removed (`png`: the
     removed points in red over the kept ones, seen from `view`)."""
@@ -429,7 +429,8 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
     if png is not None:
         from voxtool.plots import clean_figure, write_plot
 
-        fig, roof = clean_figure(cleaned.points, cleaned.dynamic, f"voxtool clean {Path(source).name}", None, view)
+        fig, roof = clean_figure(cleaned.points, cleaned.dynamic, f"voxtool clean {Path(source).name}", None, view,
+                                 above_ground=above_ground, resolution=params.resolution)
         cleaned.figures["png"] = write_plot(fig, png)
         if roof is not None:
             cleaned.figures["png"]["below_roof_m"] = round(roof, 6)

@@ -174,20 +174,28 @@ def _nearest_pixels(u: np.ndarray, w: np.ndarray, depth: np.ndarray, extent, sha
 
 
 def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: float | None = None,
-                 view: str = "top", below_roof: bool = True) -> tuple:
+                 view: str = "top", below_roof: bool = True, above_ground: tuple | None = None,
+                 resolution: float = 0.1) -> tuple:
     """(figure, roof height or None): `clean` before and after, seen from above (or, as export's pictures, from the front or
     the side): every point by height (depth for front/side, with a colour bar) with the removed
     ones in red, then the static points alone (same axes): side by side, or one above the other
     where the view is wide (a side view). `extent_m`: a square of that side around the points'
     median (a long drive is otherwise too small to judge). A top view of a place with a roof is
     drawn below it, as export's pictures are. The points are drawn as pixels of a raster (the
-    nearest point of each): a scatter plot of a million points took 5 s to draw."""
+    nearest point of each): a scatter plot of a million points took 5 s to draw.
+    `above_ground` (MIN, MAX metres; a top view): coloured by height above the ground found in
+    the static points at `resolution` (voxtool.ground) on that scale, grey where none is known."""
     from matplotlib import colormaps
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
     from matplotlib.figure import Figure
 
-    from voxtool.io.picture import COLORMAP, height_colours, roof_of
+    from voxtool.io.picture import COLORMAP, NO_GROUND_RGB, height_colours, roof_of
+
+    if above_ground is not None and view != "top":
+        from voxtool.errors import ParameterError
+
+        raise ParameterError("--above-ground colours a top view by height above the ground: not with --view")
 
     u, w, c = CLEAN_VIEWS[view]
     points = points[:, [u, w, c]].astype(np.float64)
@@ -215,6 +223,11 @@ def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: 
     lo, hi = np.percentile(z[drawn], [1, 99]) if drawn.any() else (0.0, 1.0)
     hi = max(hi, lo + 1e-6)
     colours = height_colours(np.clip(z, lo, hi), (float(lo), float(hi)))
+    if above_ground is not None and z.size:
+        above = height_above_ground(points, static, resolution)
+        lo, hi = float(above_ground[0]), max(float(above_ground[1]), float(above_ground[0]) + 1e-6)
+        colours = height_colours(np.clip(np.nan_to_num(above, nan=lo), lo, hi), (lo, hi))
+        colours[np.isnan(above), :3] = NO_GROUND_RGB
     kept = np.flatnonzero(static & drawn)
     pixel, which = _nearest_pixels(points[kept, 0], points[kept, 1], z[kept], extent, shape)
     after_image = np.ones((shape[0] * shape[1], 4))
@@ -248,8 +261,25 @@ def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: 
     else:
         after.set_ylabel("")
     what = "height" if view == "top" else f"{'xyz'[c]} (depth, nearest point drawn)"
+    if above_ground is not None:
+        what = "height above the ground (grey: none known)"
     fig.colorbar(ScalarMappable(Normalize(float(lo), float(hi)), colormaps[COLORMAP]), ax=[before, after],
                  shrink=0.8, label=f"{what} (m)", location="bottom" if not stacked else "right")
     note = "" if roof is None else f", below the roof at {roof:.2f} m ({int((~drawn).sum()):,} points above it not drawn)"
     fig.suptitle(f"{title}, {view} view{note}", fontsize=10)
     return fig, roof
+
+
+def height_above_ground(points: np.ndarray, static: np.ndarray, resolution: float) -> np.ndarray:
+    """Each point's height above the ground found in the static points (voxtool.ground, the
+    points' voxels at `resolution`); NaN where no ground is known under it."""
+    from voxtool.ground import ground_of
+    from voxtool.keys import TREE_MAX_VAL
+
+    keys = np.floor(points / resolution).astype(np.int64) + TREE_MAX_VAL
+    ground = ground_of(np.unique(keys[static], axis=0), resolution)
+    row, col = keys[:, 1] - ground.y0, keys[:, 0] - ground.x0
+    inside = (row >= 0) & (row < ground.height.shape[0]) & (col >= 0) & (col < ground.height.shape[1])
+    under = np.full(points.shape[0], np.nan)
+    under[inside] = ground.height[row[inside], col[inside]]
+    return points[:, 2] - under

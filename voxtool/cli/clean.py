@@ -32,6 +32,9 @@ from voxtool.cli.common import (
               help="Draw what was removed: every point with the removed ones in red, then the kept ones alone.")
 @click.option("--view", type=click.Choice(["top", "front", "side"]), default="top", show_default=True,
               help="--png: look from above, from the front (along +y) or the side (along -x).")
+@click.option("--above-ground", metavar="MIN,MAX",
+              help="--png (top view): colour the points by height above the ground found in the static points, "
+                   "on the scale MIN..MAX metres.")
 @click.option("--resolution", default=0.1, show_default=True, type=float, help="Voxel edge of the void map, metres.")
 @click.option("--sensor-noise", default=0.2, show_default=True, type=float,
               help="d_s: each ray gives no evidence of empty space over its last d_s metres (range noise).")
@@ -53,7 +56,7 @@ from voxtool.cli.common import (
 @click.option("--json", "as_json", is_flag=True, help="Print figures and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def clean(source, sample, output, labels, dynamic, png, view, resolution, sensor_noise, pose_error, group_share, max_range,
+def clean(source, sample, output, labels, dynamic, png, view, above_ground, resolution, sensor_noise, pose_error, group_share, max_range,
           truth, origin, threads, as_json, progress, **kw):
     """Judge every point of SOURCE static or dynamic and write the static map (-o) and/or the labels.
 
@@ -80,7 +83,19 @@ def clean(source, sample, output, labels, dynamic, png, view, resolution, sensor
         options = replace(options, truth=str(truth))
     params = CleanParams(resolution=resolution, sensor_noise=sensor_noise, pose_error=pose_error, max_range=max_range,
                          group_share=group_share)
-    result = clean_source(source, options, params, output, labels, threads, progress, dynamic, png, view, truth_npy)
+    from voxtool.ground import parse_above_ground
+
+    band = parse_above_ground(above_ground)
+    if band is not None and png is None:
+        from voxtool.errors import ParameterError
+
+        raise ParameterError("--above-ground colours the --png picture: give --png OUT.png")
+    if band is not None and view != "top":
+        from voxtool.errors import ParameterError
+
+        raise ParameterError("--above-ground colours a top view by height above the ground: not with --view")
+    result = clean_source(source, options, params, output, labels, threads, progress, dynamic, png, view, truth_npy,
+                          band)
     t = result["timings_s"]
     removed = result["points_removed"]
     share = removed / max(result["points_in"], 1)
