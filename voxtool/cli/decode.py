@@ -52,11 +52,11 @@ def decode(log, output, as_json, voxels, relay, d_inf, progress, view, view_peri
 
     replay = replay_for(view, view_period, view_keyframe)
     result = fuse([log], progress=progress, on_packet=replay.packet if replay else None)
-    if output is not None:
-        save_state_map(output, result, {"source": str(log), "packets": result.packets})
     occ = int((result.states == 1).sum())
     data = {"log": str(log), "packets": result.packets, "occupied_voxels": occ,
             "free_voxels": int(result.states.shape[0] - occ), "resolution": result.resolution, "robots": result.robots}
+    if output is not None:
+        save_state_map(output, result, {"source": str(log), "packets": result.packets})  # consumes the voxels
     if as_json:
         data["packet_headers"] = []
         for p in packets_of(log):

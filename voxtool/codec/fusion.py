@@ -251,19 +251,25 @@ def fused_leaves(result: FusionResult, sensor):
 
 
 def save_state_map(path, result: FusionResult, info: dict) -> None:
+    """Write the fused map as an octree snapshot. It consumes the result's voxels: they are
+    pruned in place into the snapshot's leaves (the fused set is the largest thing in memory;
+    a second copy was the command's peak), and the result is left without them."""
     from voxtool.config import MapParams, SensorModel
     from voxtool.io.mapfile import save_map
     from voxtool.io.snapshot import ChunkedArrays
-    from voxtool.kernels.sort import prune_sorted
+    from voxtool.kernels.sort import prune_into
     from voxtool.maps.octree import OctreeMap
 
     sensor = SensorModel()
     m = OctreeMap(MapParams(resolution=result.resolution or 0.1), sensor)  # its parameters; the leaves are below
+    codes, states = np.ascontiguousarray(result.codes), np.ascontiguousarray(result.states)
+    result.codes = result.states = None
+    depths = np.empty(codes.shape[0], np.uint8)
     # the octree's pruned leaves, straight from the sorted voxels (pruned by state: each state is
     # one log-odds value) and no tree built to be saved; the log-odds made for the leaves alone
-    codes, depths, states = prune_sorted(result.codes, result.states)
+    top = prune_into(codes, states, codes, depths, states)
+    codes, depths, states = codes[:top], depths[:top], states[:top]
     values = np.where(states == OCCUPIED, np.float32(sensor.clamp_max_log), np.float32(sensor.clamp_min_log))
-    del states
     table = ChunkedArrays(("leaf_codes", "leaf_depths", "leaf_values"), ("int64", "uint8", "float32"),
                           codes.shape[0], lambda: iter([(codes, depths, values.astype(np.float32, copy=False))]))
     save_map(path, m, {**info, "origin": [float(v) for v in result.origin]}, dict.fromkeys(table.names, table))

@@ -79,14 +79,13 @@ def latest_per_code(codes, states):
 
 
 @njit(cache=True, nogil=True)
-def prune_sorted(codes, values):
-    """OctoMap's pruned leaves of finest-level voxels (sorted unique Morton codes, their
-    log-odds): eight sibling leaves of one value become their parent, level by level. One pass
-    with a stack: siblings are consecutive in Morton order, so they meet on top of it."""
+def prune_into(codes, values, out_codes, out_depths, out_values):
+    """OctoMap's pruned leaves of finest-level voxels (sorted unique Morton codes, their values:
+    log-odds, or 2-bit states): eight sibling leaves of one value become their parent, level by
+    level. One pass with a stack: siblings are consecutive in Morton order, so they meet on top of
+    it. The stack never outgrows what it has read, so `out_codes`/`out_values` may be `codes`/
+    `values` themselves (pruned in place). Returns how many leaves."""
     n = codes.shape[0]
-    out_codes = np.empty(n, dtype=np.int64)
-    out_depths = np.empty(n, dtype=np.uint8)
-    out_values = np.empty_like(values)  # log-odds, or 2-bit states: anything compared for equality
     top = 0
     for i in range(n):
         out_codes[top] = codes[i]
@@ -113,6 +112,13 @@ def prune_sorted(codes, values):
             out_codes[top] = first
             out_depths[top] = d - 1
             top += 1
+    return top
+
+
+def prune_sorted(codes: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(codes, depths, values) of the pruned leaves (prune_into), in new arrays."""
+    out_codes, out_depths, out_values = np.empty_like(codes), np.empty(codes.shape[0], np.uint8), np.empty_like(values)
+    top = prune_into(codes, values, out_codes, out_depths, out_values)
     return out_codes[:top], out_depths[:top], out_values[:top]
 
 
