@@ -316,15 +316,31 @@ def _cells(ranks, dx, dy, dz, bits, octant, nxt, out):
         if ranks[p] >= rank + volume:
             rank += volume  # the next wanted rank lies beyond this sub-cube
             continue
-        if half == 1:
-            out[p, 0] = x
-            out[p, 1] = y
-            out[p, 2] = z
-            p += 1
-            rank += 1
+        child = nxt[st_state[lvl], h]
+        if volume == half * half * half:
+            # a whole cube inside the box: its cells follow the curve without gaps, so each wanted
+            # rank in it is read digit by digit (a table step a level), no sibling visited
+            while p < n and ranks[p] < rank + volume:
+                r = ranks[p] - rank
+                state, cx, cy, cz, size = child, x, y, z, half
+                while size > 1:
+                    size >>= 1
+                    cells = size * size * size
+                    digit = r // cells
+                    r -= digit * cells
+                    oo = octant[state, digit]
+                    cx += (oo & 1) * size
+                    cy += ((oo >> 1) & 1) * size
+                    cz += ((oo >> 2) & 1) * size
+                    state = nxt[state, digit]
+                out[p, 0] = cx
+                out[p, 1] = cy
+                out[p, 2] = cz
+                p += 1
+            rank += volume
             continue
         lvl += 1
-        st_state[lvl] = nxt[st_state[lvl - 1], h]
+        st_state[lvl] = child
         st_h[lvl] = 0
         st_x[lvl] = x
         st_y[lvl] = y
