@@ -90,10 +90,11 @@ def test_the_running_latest_state_equals_a_sort_of_every_change(packets):
 @settings(max_examples=60)
 @given(st.integers(0, 2**32 - 1), st.integers(1, 4000), st.integers(0, 3))
 def test_pruning_the_sorted_voxels_equals_the_octrees_pruned_leaves(seed, n, levels):
-    """prune_sorted (fusion's snapshot, no tree built) gives the leaves OctreeMap gives for the
-    same finest voxels: whole blocks of 2^levels voxels of one value merge up, mixed ones do not."""
+    """prune_into, in place as fusion's snapshot uses it (no tree built), gives the leaves OctreeMap
+    gives for the same finest voxels: whole blocks of 2^levels voxels of one value merge up, mixed
+    ones do not."""
     from voxtool.config import MapParams, SensorModel
-    from voxtool.kernels.sort import prune_sorted
+    from voxtool.kernels.sort import prune_into
     from voxtool.keys import morton_encode
     from voxtool.maps.octree import OctreeMap
 
@@ -109,7 +110,10 @@ def test_pruning_the_sorted_voxels_equals_the_octrees_pruned_leaves(seed, n, lev
     m = OctreeMap(MapParams(resolution=0.1), SensorModel())
     m.load_state({"leaf_codes": codes, "leaf_depths": np.full(codes.shape[0], 16, np.uint8), "leaf_values": values})
     reference = m.leaves()
-    got_codes, got_depths, got_values = prune_sorted(codes, values)
+    got_codes, got_values = codes.copy(), values.copy()
+    got_depths = np.empty(codes.shape[0], np.uint8)
+    top = prune_into(got_codes, got_values, got_codes, got_depths, got_values)
+    got_codes, got_depths, got_values = got_codes[:top], got_depths[:top], got_values[:top]
     assert np.array_equal(got_codes, reference.codes) and np.array_equal(got_depths, reference.depths)
     assert np.array_equal(got_values, reference.values)
     assert levels == 0 or (reference.depths < 16).any()  # the blocks did merge: pruning was exercised

@@ -56,7 +56,7 @@ def project(leaves: Leaves, resolution: float, threshold_log: float,
     if above_ground is not None:
         from voxtool.ground import project_above_ground
 
-        return project_above_ground(leaves, resolution, threshold_log, above_ground)[0]
+        return project_above_ground(leaves, resolution, threshold_log, above_ground)
     return project_sets(lambda: [(leaves, threshold_log)], resolution, z_range)
 
 

@@ -159,7 +159,7 @@ def occupied_keys(leaves: Leaves, threshold_log: float) -> np.ndarray:
 
 
 def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float, band: tuple[float, float],
-                         params: GroundParams = GroundParams()) -> tuple[Grid2D, Ground]:
+                         params: GroundParams = GroundParams()) -> Grid2D:
     """The 2D grid of what stands MIN..MAX metres above the ground: a cell is occupied where an
     occupied voxel's centre lies in that band above the ground under it, free where the ground
     under it is known and nothing in the band is occupied, unknown where its ground is not."""
@@ -173,4 +173,4 @@ def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float
     inside = ~np.isnan(base) & (above >= band[0]) & (above <= band[1])
     cells[row[inside], col[inside]] = OCCUPIED
     origin = ((ground.x0 - TREE_MAX_VAL) * resolution, (ground.y0 - TREE_MAX_VAL) * resolution)
-    return Grid2D(cells, resolution, origin, None), ground
+    return Grid2D(cells, resolution, origin, None)

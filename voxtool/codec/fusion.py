@@ -242,14 +242,6 @@ def _fused_codes(p: Packet, extrinsics: dict) -> np.ndarray:
     return codes
 
 
-def fused_leaves(result: FusionResult, sensor):
-    """Leaves (one per voxel, max-likelihood log-odds) for a snapshot of a fused state map."""
-    from voxtool.maps.base import Leaves
-
-    values = np.where(result.states == OCCUPIED, np.float32(sensor.clamp_max_log), np.float32(sensor.clamp_min_log))
-    return Leaves(result.codes, np.full(result.codes.shape[0], 16, np.uint8), values.astype(np.float32))
-
-
 def save_state_map(path, result: FusionResult, info: dict) -> None:
     """Write the fused map as an octree snapshot. It consumes the result's voxels: they are
     pruned in place into the snapshot's leaves (the fused set is the largest thing in memory;

@@ -115,13 +115,6 @@ def prune_into(codes, values, out_codes, out_depths, out_values):
     return top
 
 
-def prune_sorted(codes: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(codes, depths, values) of the pruned leaves (prune_into), in new arrays."""
-    out_codes, out_depths, out_values = np.empty_like(codes), np.empty(codes.shape[0], np.uint8), np.empty_like(values)
-    top = prune_into(codes, values, out_codes, out_depths, out_values)
-    return out_codes[:top], out_depths[:top], out_values[:top]
-
-
 @njit(cache=True, nogil=True)
 def merge_latest_into(codes, states, n, codes_b, states_b):
     """The union of a sorted, unique change set (the first n entries of `codes`/`states`) and
