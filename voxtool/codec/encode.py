@@ -102,14 +102,11 @@ def split_changes(codes: np.ndarray, max_count: int, density: int = 256) -> list
 
 
 def merge_latest(codes_a, states_a, codes_b, states_b):
-    """Union of two change sets keeping b's state where both hold a voxel (sorted unique codes)."""
-    codes = np.concatenate([codes_a, codes_b])
-    states = np.concatenate([states_a, states_b])
-    order = np.argsort(codes, kind="stable")
-    codes, states = codes[order], states[order]
-    last = np.ones(codes.shape[0], dtype=bool)
-    last[:-1] = codes[1:] != codes[:-1]
-    return codes[last], states[last]
+    """Union of two change sets keeping b's state where both hold a voxel (sorted unique codes):
+    the latest state per code of a then b, as fusion keeps it (kernels.sort.latest_per_code)."""
+    from voxtool.kernels.sort import latest_per_code
+
+    return latest_per_code(np.concatenate([codes_a, codes_b]), np.concatenate([states_a, states_b]))
 
 
 @dataclass

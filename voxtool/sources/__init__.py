@@ -233,12 +233,7 @@ def _open_cloud_files(path: Path, options: SourceOptions, suffix: str) -> ScanSt
 
     def scans() -> Iterator[Scan]:
         read_count = 0
-        for i, f in islice(enumerate(files), options.start, options.stop, options.every):
-            try:
-                scan = read(i, f)
-            except SourceError as err:
-                bad(i, err)
-                continue
+        for scan in _file_scans(files, options, read, bad):
             read_count += 1
             yield scan
         if len(unposed) > 1 and len(unposed) == read_count:  # all at the origin: a static sensor, or a dump without poses
@@ -251,6 +246,18 @@ def _open_cloud_files(path: Path, options: SourceOptions, suffix: str) -> ScanSt
                           "one, `voxtool odometry` estimates poses", VoxtoolWarning, stacklevel=2)
 
     return ScanStream(suffix.lstrip("."), path, _selected(path, len(files), options), scans(), bad)
+
+
+def _file_scans(files: list[Path], options: SourceOptions, read, bad: BadScans) -> Iterator[Scan]:
+    """read(i, file) of the scan files the slice options select; one that cannot be read goes
+    to `bad` (which raises, or records it and reading goes on)."""
+    for i, f in islice(enumerate(files), options.start, options.stop, options.every):
+        try:
+            scan = read(i, f)
+        except SourceError as err:
+            bad(i, err)
+            continue
+        yield scan
 
 
 def truth_of(scan_file: Path, points: int, options: SourceOptions) -> dict | None:
@@ -286,16 +293,8 @@ def _open_kitti(path: Path, options: SourceOptions) -> ScanStream:
         return make_scan(points, pose, i, stamp, str(f), f.stat().st_size, options,
                          per_point=truth_of(f, points.shape[0], options))
 
-    def scans() -> Iterator[Scan]:
-        for i, f in islice(enumerate(files), options.start, options.stop, options.every):
-            try:
-                scan = read(i, f)
-            except SourceError as err:
-                bad(i, err)
-                continue
-            yield scan
-
-    return ScanStream("kitti", sequence, _selected(sequence, len(files), options), scans(), bad)
+    return ScanStream("kitti", sequence, _selected(sequence, len(files), options),
+                      _file_scans(files, options, read, bad), bad)
 
 
 def _open_pcd(path: Path, options: SourceOptions) -> ScanStream:
