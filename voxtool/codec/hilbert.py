@@ -103,42 +103,63 @@ def state_tables() -> tuple[np.ndarray, np.ndarray]:
     return np.array(octant_rows, dtype=np.int64), np.array(next_rows, dtype=np.int64)
 
 
+# The three walks below (every cell; ranks of given cells; cells of given ranks) share one
+# depth-first descent: a stack row per open sub-cube (its state on the curve, the next child to
+# visit, its corner), children taken in curve order by the state tables.
+STATE, NEXT_CHILD, X, Y, Z = range(5)
+
+
+@njit(cache=True, inline="always")
+def _open_stack(bits):
+    return np.zeros((bits + 1, 5), dtype=np.int64)
+
+
+@njit(cache=True, inline="always")
+def _next_child(stack, lvl, bits, octant):
+    """(h, octant, half, x, y, z) of the next child of the sub-cube open at depth `lvl` (its
+    digit on the curve, the octant it fills, its side, its corner); h = -1 when all eight were."""
+    h = stack[lvl, NEXT_CHILD]
+    if h == 8:
+        return -1, 0, 0, 0, 0, 0
+    stack[lvl, NEXT_CHILD] = h + 1
+    o = octant[stack[lvl, STATE], h]
+    half = 1 << (bits - lvl - 1)
+    return (h, o, half, stack[lvl, X] + (o & 1) * half, stack[lvl, Y] + ((o >> 1) & 1) * half,
+            stack[lvl, Z] + ((o >> 2) & 1) * half)
+
+
+@njit(cache=True, inline="always")
+def _open(stack, lvl, state, x, y, z):
+    """Open a sub-cube at depth `lvl` (its first child next)."""
+    stack[lvl, STATE] = state
+    stack[lvl, NEXT_CHILD] = 0
+    stack[lvl, X] = x
+    stack[lvl, Y] = y
+    stack[lvl, Z] = z
+
+
 @njit(cache=True, nogil=True)
 def _walk(dx, dy, dz, bits, octant, nxt, out):
     """Nested index x + dx * (y + dy * z) of every in-box cell, in curve order."""
-    st_state = np.zeros(bits + 1, dtype=np.int64)
-    st_h = np.zeros(bits + 1, dtype=np.int64)
-    st_x = np.zeros(bits + 1, dtype=np.int64)
-    st_y = np.zeros(bits + 1, dtype=np.int64)
-    st_z = np.zeros(bits + 1, dtype=np.int64)
-    k = 0
     if bits == 0:
         out[0] = 0
         return 1
+    stack = _open_stack(bits)
+    k = 0
     lvl = 0  # stack depth; cube size at depth l is 2^(bits - l)
     while lvl >= 0:
-        h = st_h[lvl]
-        if h == 8:
+        h, o, half, x, y, z = _next_child(stack, lvl, bits, octant)
+        if h < 0:
             lvl -= 1
             continue
-        st_h[lvl] = h + 1
-        o = octant[st_state[lvl], h]
-        half = 1 << (bits - lvl - 1)
-        x = st_x[lvl] + (o & 1) * half
-        y = st_y[lvl] + ((o >> 1) & 1) * half
-        z = st_z[lvl] + ((o >> 2) & 1) * half
         if x >= dx or y >= dy or z >= dz:
             continue  # sub-cube starts outside the box (the box is anchored at 0)
         if half == 1:
             out[k] = x + dx * (y + dy * z)
             k += 1
             continue
+        _open(stack, lvl + 1, nxt[stack[lvl, STATE], h], x, y, z)
         lvl += 1
-        st_state[lvl] = nxt[st_state[lvl - 1], h]
-        st_h[lvl] = 0
-        st_x[lvl] = x
-        st_y[lvl] = y
-        st_z[lvl] = z
     return k
 
 
@@ -236,27 +257,17 @@ def _ranks(codes, dx, dy, dz, bits, octant, nxt, out):
         for i in range(n):
             out[i] = 0
         return
-    st_state = np.zeros(bits + 1, dtype=np.int64)
-    st_h = np.zeros(bits + 1, dtype=np.int64)
-    st_x = np.zeros(bits + 1, dtype=np.int64)
-    st_y = np.zeros(bits + 1, dtype=np.int64)
-    st_z = np.zeros(bits + 1, dtype=np.int64)
-    st_base = np.zeros(bits + 1, dtype=np.int64)
-    bounds = np.zeros((bits + 1, 9), dtype=np.int64)  # each open node's codes, split by child digit
+    stack = _open_stack(bits)
+    base_of = np.zeros(bits + 1, dtype=np.int64)  # each open sub-cube's first Morton code
+    bounds = np.zeros((bits + 1, 9), dtype=np.int64)  # each open sub-cube's codes, split by child digit
     _digit_bounds(codes, 0, n, 0, 1 << (3 * (bits - 1)), bounds, 0)
     rank = 0
     lvl = 0
     while lvl >= 0:
-        h = st_h[lvl]
-        if h == 8:
+        h, o, half, x, y, z = _next_child(stack, lvl, bits, octant)
+        if h < 0:
             lvl -= 1
             continue
-        st_h[lvl] = h + 1
-        o = octant[st_state[lvl], h]
-        half = 1 << (bits - lvl - 1)
-        x = st_x[lvl] + (o & 1) * half
-        y = st_y[lvl] + ((o >> 1) & 1) * half
-        z = st_z[lvl] + ((o >> 2) & 1) * half
         if x >= dx or y >= dy or z >= dz:
             continue
         lo = bounds[lvl, o]
@@ -268,14 +279,10 @@ def _ranks(codes, dx, dy, dz, bits, octant, nxt, out):
             out[lo] = rank
             rank += 1
             continue
-        base = st_base[lvl] + o * half * half * half
+        base = base_of[lvl] + o * half * half * half
+        _open(stack, lvl + 1, nxt[stack[lvl, STATE], h], x, y, z)
         lvl += 1
-        st_state[lvl] = nxt[st_state[lvl - 1], h]
-        st_h[lvl] = 0
-        st_x[lvl] = x
-        st_y[lvl] = y
-        st_z[lvl] = z
-        st_base[lvl] = base
+        base_of[lvl] = base
         quarter = half >> 1
         _digit_bounds(codes, lo, hi, base, quarter * quarter * quarter, bounds, lvl)
 
@@ -291,32 +298,22 @@ def _cells(ranks, dx, dy, dz, bits, octant, nxt, out):
             out[i, 1] = 0
             out[i, 2] = 0
         return
-    st_state = np.zeros(bits + 1, dtype=np.int64)
-    st_h = np.zeros(bits + 1, dtype=np.int64)
-    st_x = np.zeros(bits + 1, dtype=np.int64)
-    st_y = np.zeros(bits + 1, dtype=np.int64)
-    st_z = np.zeros(bits + 1, dtype=np.int64)
+    stack = _open_stack(bits)
     rank = 0
     p = 0
     lvl = 0
     while lvl >= 0 and p < n:
-        h = st_h[lvl]
-        if h == 8:
+        h, o, half, x, y, z = _next_child(stack, lvl, bits, octant)
+        if h < 0:
             lvl -= 1
             continue
-        st_h[lvl] = h + 1
-        o = octant[st_state[lvl], h]
-        half = 1 << (bits - lvl - 1)
-        x = st_x[lvl] + (o & 1) * half
-        y = st_y[lvl] + ((o >> 1) & 1) * half
-        z = st_z[lvl] + ((o >> 2) & 1) * half
         if x >= dx or y >= dy or z >= dz:
             continue
         volume = min(half, dx - x) * min(half, dy - y) * min(half, dz - z)
         if ranks[p] >= rank + volume:
             rank += volume  # the next wanted rank lies beyond this sub-cube
             continue
-        child = nxt[st_state[lvl], h]
+        child = nxt[stack[lvl, STATE], h]
         if volume == half * half * half:
             # a whole cube inside the box: its cells follow the curve without gaps, so each wanted
             # rank in it is read digit by digit (a table step a level), no sibling visited
@@ -339,12 +336,8 @@ def _cells(ranks, dx, dy, dz, bits, octant, nxt, out):
                 p += 1
             rank += volume
             continue
+        _open(stack, lvl + 1, child, x, y, z)
         lvl += 1
-        st_state[lvl] = child
-        st_h[lvl] = 0
-        st_x[lvl] = x
-        st_y[lvl] = y
-        st_z[lvl] = z
 
 
 def ranks_of(rel: np.ndarray, dims) -> np.ndarray:
