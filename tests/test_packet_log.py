@@ -32,22 +32,31 @@ def test_rosbags_decodes_every_header_field_of_a_log(sample_logs):
         assert msg.stored_size + HEADER.size == len(blob) and msg.version == blob[4]
 
 
-def test_a_log_of_the_old_layout_reads_the_same_packets(sample_logs, tmp_path):
+def write_legacy_log(path, packets, info: dict | None = None):
+    """A packet log in the first layout (schema voxtool/MapPacket, the packet as the whole message)
+    of robot r1's (robot, stamp, packet) messages; `info`: its metadata record."""
+    import json
+
     from mcap.writer import CompressionType, Writer
 
-    log = sample_logs["r1"][0]
-    meta, messages = read_log(log)
-    packets = list(messages)
-    old = tmp_path / "old.mcap"
-    with open(old, "wb") as f:  # the first layout: the packet is the message
+    with open(path, "wb") as f:
         writer = Writer(f, compression=CompressionType.NONE)
         writer.start(profile="", library="voxtool")
         schema = writer.register_schema(LEGACY_SCHEMA, "voxtool-packet-v1", b"see formats/packet.md")
         channel = writer.register_channel("/voxtool/packets/r1", "voxtool-packet-v1", schema, {"robot": "r1"})
         for seq, (_, stamp, blob) in enumerate(packets):
             writer.add_message(channel, stamp, blob, stamp, sequence=seq)
-        writer.add_metadata("voxtool", {"robot": "r1", "info": '{"scans": 5}'})
+        if info is not None:
+            writer.add_metadata("voxtool", {"robot": "r1", "info": json.dumps(info)})
         writer.finish()
+    return path
+
+
+def test_a_log_of_the_old_layout_reads_the_same_packets(sample_logs, tmp_path):
+    log = sample_logs["r1"][0]
+    meta, messages = read_log(log)
+    packets = list(messages)
+    old = write_legacy_log(tmp_path / "old.mcap", packets, {"scans": 5})
     old_meta, old_messages = read_log(old)
     assert list(old_messages) == packets and old_meta == {"r1": {"scans": 5}}
 
@@ -183,18 +192,8 @@ def test_stats_from_the_headers_equal_the_decoded_packets(tmp_path, scheme, code
                 for p in deltas)
     assert got["vs_racer"] == pytest.approx(racer / got["bytes"], abs=1e-3)
 
-    from mcap.writer import CompressionType, Writer
-
-    old = tmp_path / "old.mcap"
     _, messages = read_log(log)
-    with open(old, "wb") as f:  # the first layout: the packet is the whole message
-        writer = Writer(f, compression=CompressionType.NONE)
-        writer.start(profile="", library="voxtool")
-        schema = writer.register_schema(LEGACY_SCHEMA, "voxtool-packet-v1", b"see formats/packet.md")
-        channel = writer.register_channel("/voxtool/packets/r1", "voxtool-packet-v1", schema, {"robot": "r1"})
-        for seq, (_, stamp, blob) in enumerate(messages):
-            writer.add_message(channel, stamp, blob, stamp, sequence=seq)
-        writer.finish()
+    old = write_legacy_log(tmp_path / "old.mcap", list(messages))
     old_stats = json.loads(cli("stats", old, "--json")[1])["robots"]["r1"]
     same = ("packets", "bytes", "changed_voxels", "raw_payload_bytes", "stored_payload_bytes", "vs_racer")
     assert {k: old_stats[k] for k in same} == {k: got[k] for k in same}
