@@ -50,10 +50,7 @@ def map_ground(sequence: Path, resolution: float, band: float) -> tuple[np.ndarr
     flags = []
     for scan in open_source(sequence, SourceOptions()).scans:
         keys = np.floor(scan.points.astype(np.float64) / resolution).astype(np.int64) + TREE_MAX_VAL
-        row, col = keys[:, 1] - ground.y0, keys[:, 0] - ground.x0
-        inside = (row >= 0) & (row < ground.height.shape[0]) & (col >= 0) & (col < ground.height.shape[1])
-        height = np.full(len(keys), np.nan)
-        height[inside] = ground.height[row[inside], col[inside]]
+        height = ground.under(keys[:, 0], keys[:, 1])
         flags.append(np.abs(scan.points[:, 2] - height) <= band)  # NaN (no ground known) is never ground
     return np.concatenate(flags), time.perf_counter() - t0
 

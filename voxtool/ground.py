@@ -124,6 +124,15 @@ class Ground:
     y0: int
     resolution: float
 
+    def under(self, kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
+        """The ground's height under columns (kx, ky) (key arrays of one shape); NaN where it is
+        not known or the column lies outside the grid."""
+        row, col = np.asarray(ky) - self.y0, np.asarray(kx) - self.x0
+        inside = (row >= 0) & (row < self.height.shape[0]) & (col >= 0) & (col < self.height.shape[1])
+        out = np.full(row.shape, np.nan)
+        out[inside] = self.height[row[inside], col[inside]]
+        return out
+
 
 def ground_of(keys: np.ndarray, resolution: float, params: GroundParams = GroundParams()) -> Ground:
     """The ground under occupied voxels given as finest keys (N, 3)."""
@@ -165,12 +174,9 @@ def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float
     under it is known and nothing in the band is occupied, unknown where its ground is not."""
     keys = occupied_keys(leaves, threshold_log)
     ground = ground_of(keys, resolution, params)
-    rows, cols = ground.height.shape
     cells = np.where(np.isnan(ground.height), UNKNOWN, FREE).astype(np.int8)
-    row, col = keys[:, 1] - ground.y0, keys[:, 0] - ground.x0
-    base = ground.height[row, col]
-    above = (keys[:, 2] - TREE_MAX_VAL + 0.5) * resolution - base
-    inside = ~np.isnan(base) & (above >= band[0]) & (above <= band[1])
-    cells[row[inside], col[inside]] = OCCUPIED
+    above = (keys[:, 2] - TREE_MAX_VAL + 0.5) * resolution - ground.under(keys[:, 0], keys[:, 1])
+    inside = (above >= band[0]) & (above <= band[1])  # NaN (no ground) is in no band
+    cells[keys[inside, 1] - ground.y0, keys[inside, 0] - ground.x0] = OCCUPIED
     origin = ((ground.x0 - TREE_MAX_VAL) * resolution, (ground.y0 - TREE_MAX_VAL) * resolution)
     return Grid2D(cells, resolution, origin, None)

@@ -278,8 +278,4 @@ def height_above_ground(points: np.ndarray, static: np.ndarray, resolution: floa
 
     keys = np.floor(points / resolution).astype(np.int64) + TREE_MAX_VAL
     ground = ground_of(np.unique(keys[static], axis=0), resolution)
-    row, col = keys[:, 1] - ground.y0, keys[:, 0] - ground.x0
-    inside = (row >= 0) & (row < ground.height.shape[0]) & (col >= 0) & (col < ground.height.shape[1])
-    under = np.full(points.shape[0], np.nan)
-    under[inside] = ground.height[row[inside], col[inside]]
-    return points[:, 2] - under
+    return points[:, 2] - ground.under(keys[:, 0], keys[:, 1])

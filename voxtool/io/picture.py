@@ -97,13 +97,9 @@ class Raster:
         if ground is None:
             return values
         half = (1 << self.shift) // 2  # the pixel's centre column
-        cols = self.kmin[0] + (np.arange(self.width) << self.shift) + half - ground.x0
-        rows = self.kmin[1] + (np.arange(self.height) << self.shift) + half - ground.y0
-        inside_c = (cols >= 0) & (cols < ground.height.shape[1])
-        inside_r = (rows >= 0) & (rows < ground.height.shape[0])
-        under = np.full((self.height, self.width), np.nan)
-        under[np.ix_(inside_r, inside_c)] = ground.height[np.ix_(rows[inside_r], cols[inside_c])]
-        return values - under
+        kx = self.kmin[0] + (np.arange(self.width) << self.shift) + half
+        ky = self.kmin[1] + (np.arange(self.height) << self.shift) + half
+        return values - ground.under(*np.meshgrid(kx, ky))  # rows from the bottom, as values
 
     def metres(self, resolution: float) -> tuple[float, float, float, float]:
         """Extent (left, right, bottom, top) of the picture in metres (voxel edges)."""
