@@ -9,8 +9,12 @@ ray-traced into them (voxtool.synthetic.traffic and insert_movers: two cars, one
 10 m/s and one overtaking, a cyclist and three pedestrians, standing on the ground; every real
 ray kept, and stopped at a box lying in front of its return: those points are the dynamic
 truth), all scans, keyframe-like variants (every 3rd scan; scans voxel-downsampled to 0.2 m) and
-the same scans without movers (false removals alone). SA / DA / AA of both tools and a picture
-per scene (removed red over kept; bench-results/clean_real_<scene>.png).
+the same scans without movers (false removals alone); and dense 64-beam car frames (KITTI
+sequences 00 and 05, frames 0-9, with SemanticKITTI's moving points as truth too; fetched by
+scripts/fetch_samples.py, skipped without them) whose poses carry survey-grade error
+(voxtool.synthetic.PoseError). SA / DA / AA of both tools and a picture per scene (removed red
+over kept; bench-results/clean_real_<scene>.png). Then the ground table: voxtool judging the
+ground as any other surface (--ground-band -1) against its default, and the cost a scan.
 
 Generated street scenes with ground truth (voxtool.synthetic: buildings, poles, parked cars; two
 cars, a cyclist and pedestrians moving; a 32- or 64-beam spinning LiDAR with range noise):
@@ -33,6 +37,7 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -85,75 +90,126 @@ def best_of(repeat, first, second):
     return min(a, key=lambda r: r[1]), min(b, key=lambda r: r[1])
 
 
-def real_scene(src: Path, out: Path, movers: bool, every: int = 1, voxel: float | None = None) -> np.ndarray:
-    """A shared dataset's scans (every `every`-th; one point per `voxel` cube if given) with the
-    moving boxes of synthetic.traffic ray-traced into their real returns, written as a PCD
-    directory (points relative to the sensor origin, VIEWPOINT the origin, poses.txt the
-    times); returns every point's dynamic truth, in read order."""
+@dataclass(frozen=True)
+class RealScene:
+    name: str
+    dataset: str  # a folder of ../shared/data with pcd/, or kitti/NN: .fetched/mini_kitti/sequences/NN
+    movers: bool = True
+    every: int = 1  # every n-th scan
+    voxel: float | None = None  # one point per voxel of this size (a keyframe dump)
+    pose_error: bool = False  # synthetic.PoseError on every scan (after the movers are traced)
+
+
+REAL_SCENES = [
+    RealScene("kaist03 + movers", "kaist03"),
+    RealScene("kaist03 + movers, every 3rd scan", "kaist03", every=3),
+    RealScene("kaist03 + movers, 0.2 m keyframes", "kaist03", voxel=0.2),
+    RealScene("kaist03, no movers", "kaist03", movers=False),
+    RealScene("norlab + movers", "norlab"),
+    RealScene("norlab, no movers", "norlab", movers=False),
+    RealScene("quick_shack + movers", "quick_shack"),
+    RealScene("quick_shack, no movers", "quick_shack", movers=False),
+    # dense 64-beam car frames (KITTI, with their real movers labelled by SemanticKITTI) whose poses
+    # carry survey-grade error: rays graze the road another scan saw a few centimetres higher
+    RealScene("KITTI 00 + movers, pose error", "kitti/00", pose_error=True),
+    RealScene("KITTI 05 + movers, pose error", "kitti/05", pose_error=True),
+    RealScene("KITTI 00, pose error", "kitti/00", movers=False, pose_error=True),
+    RealScene("KITTI 05, pose error", "kitti/05", movers=False, pose_error=True),
+    RealScene("KITTI 05 + movers, exact poses", "kitti/05"),
+]
+KITTI = Path(__file__).resolve().parents[1] / ".fetched" / "mini_kitti" / "sequences"  # scripts/fetch_samples.py
+
+
+def scene_source(data: Path, scene: RealScene) -> tuple[Path, Path | None]:
+    """The scans of a scene and the folder of its SemanticKITTI labels (None: no real movers)."""
+    if scene.dataset.startswith("kitti/"):
+        seq = KITTI / scene.dataset.split("/")[1]
+        return seq, seq / "labels"
+    return data / scene.dataset / "pcd", None
+
+
+def real_scene(src: Path, out: Path, scene: RealScene, labels: Path | None = None) -> np.ndarray:
+    """A real dataset's scans (every `every`-th; one point per `voxel` cube if given) with the
+    moving boxes of synthetic.traffic ray-traced into their real returns, then (pose_error) each
+    scan placed by a pose with survey-grade error, written as a PCD directory (points relative
+    to the sensor origin, VIEWPOINT the origin, poses.txt the times); returns every point's
+    dynamic truth (on a box, or a moving class of `labels`), in read order."""
     from voxtool.io.export import pcd_header, pcd_rows
     from voxtool.sources import SourceOptions, open_source
-    from voxtool.synthetic import ground_height, insert_movers, traffic
+    from voxtool.synthetic import PoseError, ground_height, insert_movers, traffic
 
-    scans = list(open_source(src, SourceOptions(every=every)).scans)
+    options = SourceOptions(every=scene.every, truth=str(labels) if labels else None)
+    scans = list(open_source(src, options).scans)
     stamps = np.array([s.stamp_ns for s in scans], dtype=np.float64) / 1e9
-    times = stamps - stamps[0] if np.any(stamps) else np.arange(len(scans)) * every / 10.0
+    times = stamps - stamps[0] if np.any(stamps) else np.arange(len(scans)) * scene.every / 10.0
     origins = np.array([s.origin for s in scans], dtype=np.float64)
-    boxes = traffic(origins, times, ground_height(scans[0].points, origins[0])) if movers else []
+    boxes = traffic(origins, times, ground_height(scans[0].points, origins[0])) if scene.movers else []
+    rng = np.random.default_rng(7)
     out.mkdir(parents=True, exist_ok=True)
-    labels, poses = [], []
+    truths, poses = [], []
     for i, scan in enumerate(scans):
-        points = scan.points
-        if voxel is not None:  # a keyframe dump: one point per voxel, the first the scan holds
-            keys = np.floor(points / voxel).astype(np.int64)
+        points, real = scan.points, scan.extra.get("truth", np.zeros(scan.points.shape[0], dtype=bool))
+        if scene.voxel is not None:  # a keyframe dump: one point per voxel, the first the scan holds
+            keys = np.floor(points / scene.voxel).astype(np.int64)
             _, first = np.unique(keys, axis=0, return_index=True)
-            points = points[np.sort(first)]
+            points, real = points[np.sort(first)], real[np.sort(first)]
         points, dynamic = insert_movers(points, scan.origin, float(times[i]), boxes)
-        local = (points.astype(np.float64) - origins[i]).astype(np.float32)
-        (out / f"{i:06d}.pcd").write_bytes(pcd_header(len(local), False, viewpoint=(*origins[i], 1.0, 0.0, 0.0, 0.0))
+        origin = origins[i]
+        if scene.pose_error:
+            points, origin = PoseError().apply(points, origin, rng)
+        local = (points.astype(np.float64) - origin).astype(np.float32)
+        (out / f"{i:06d}.pcd").write_bytes(pcd_header(len(local), False, viewpoint=(*origin, 1.0, 0.0, 0.0, 0.0))
                                            + pcd_rows(local, None))
-        poses.append(f"{times[i]:.6f} {origins[i][0]:.9f} {origins[i][1]:.9f} {origins[i][2]:.9f} 0 0 0 1\n")
-        labels.append(dynamic)
+        poses.append(f"{times[i]:.6f} {origin[0]:.9f} {origin[1]:.9f} {origin[2]:.9f} 0 0 0 1\n")
+        truths.append(dynamic | real)
     (out / "poses.txt").write_text("".join(poses))
-    return np.concatenate(labels)
+    return np.concatenate(truths)
 
 
-REAL_SCENES = [  # name, dataset, movers, every n-th scan, voxel size of a keyframe dump
-    ("kaist03 + movers", "kaist03", True, 1, None),
-    ("kaist03 + movers, every 3rd scan", "kaist03", True, 3, None),
-    ("kaist03 + movers, 0.2 m keyframes", "kaist03", True, 1, 0.2),
-    ("kaist03, no movers", "kaist03", False, 1, None),
-    ("norlab + movers", "norlab", True, 1, None),
-    ("norlab, no movers", "norlab", False, 1, None),
-    ("quick_shack + movers", "quick_shack", True, 1, None),
-    ("quick_shack, no movers", "quick_shack", False, 1, None),
-]
+def real_movers(data: Path, tmp: Path, out: Path, params, repeat: int) -> tuple[list[dict], list[dict]]:
+    """REAL_SCENES: both tools at their defaults, scored against the ray-traced truth; then the
+    ground table: voxtool with the ground judged as any surface (--ground-band -1) against the
+    default, and what judging the ground costs a scan."""
+    import dataclasses
 
-
-def real_movers(data: Path, tmp: Path, out: Path, params, repeat: int) -> list[dict]:
-    """REAL_SCENES: both tools at their defaults, scored against the ray-traced truth."""
     from voxtool.clean import accuracy
     from voxtool.plots import clean_figure, write_plot
 
-    rows = []
+    rows, ground_rows = [], []
     print(f"{'real scans, movers ray-traced':36} {'points':>9} {'dynamic':>8} | {'voxtool SA / DA / AA':>22} "
           f"{'time':>7} | {'DUFOMap SA / DA / AA':>22} {'time':>7}")
-    for name, dataset, movers, every, voxel in REAL_SCENES:
-        src = data / dataset / "pcd"
+    no_ground = dataclasses.replace(params, ground_band=-1.0)
+    for scene in REAL_SCENES:
+        src, labels = scene_source(data, scene)
         if not src.is_dir():
             continue
-        scene = tmp / name.replace(" ", "_").replace(",", "").replace("+", "with")
-        truth = real_scene(src, scene, movers, every, voxel)
-        (vox, vox_s, cleaned), (duf, duf_s) = best_of(repeat, lambda s=scene: run_voxtool(s, params),
-                                                     lambda s=scene: run_dufomap(s, params))
-        v, d = accuracy(vox, truth), accuracy(duf, truth)
-        picture = out.parent / f"clean_real_{scene.name}.png"
-        write_plot(clean_figure(cleaned.points, vox, f"voxtool clean, {name} (0.1 m)", 80.0)[0], picture)
-        rows.append({"input": name, "points": int(truth.size), "dynamic_points": int(truth.sum()),
+        folder = tmp / scene.name.replace(" ", "_").replace(",", "").replace("+", "with")
+        truth = real_scene(src, folder, scene, labels)
+        (vox, vox_s, cleaned), (duf, duf_s) = best_of(repeat, lambda s=folder: run_voxtool(s, params),
+                                                     lambda s=folder: run_dufomap(s, params))
+        off, _, off_cleaned = min((run_voxtool(folder, no_ground) for _ in range(repeat)), key=lambda r: r[1])
+        v, d, g = accuracy(vox, truth), accuracy(duf, truth), accuracy(off, truth)
+        picture = out.parent / f"clean_real_{folder.name}.png"
+        write_plot(clean_figure(cleaned.points, vox, f"voxtool clean, {scene.name} (0.1 m)", 80.0)[0], picture)
+        rows.append({"input": scene.name, "points": int(truth.size), "dynamic_points": int(truth.sum()),
                      "removed_share": {"voxtool": round(float(vox.mean()), 5), "dufomap": round(float(duf.mean()), 5)},
                      "voxtool": {**v, "seconds": vox_s}, "dufomap": {**d, "seconds": duf_s}, "picture": str(picture)})
-        print(f"{name:36} {truth.size:>9,} {int(truth.sum()):>8,} | {v['SA']:6.2f} {v['DA']:6.2f} {v['AA']:6.2f} "
+        scans = cleaned.figures["scans"]
+        extra = (cleaned.figures["timings_s"]["classify"] - off_cleaned.figures["timings_s"]["classify"]) / scans
+        ground_rows.append({"input": scene.name, "ground_points": cleaned.figures["ground_points"],
+                            "ground_judged": {**v, "removed_share": round(float(vox.mean()), 5)},
+                            "ground_as_any_surface": {**g, "removed_share": round(float(off.mean()), 5)},
+                            "ground_ms_per_scan": round(1000 * extra, 2)})
+        print(f"{scene.name:36} {truth.size:>9,} {int(truth.sum()):>8,} | {v['SA']:6.2f} {v['DA']:6.2f} {v['AA']:6.2f} "
               f"{vox_s:6.2f}s | {d['SA']:6.2f} {d['DA']:6.2f} {d['AA']:6.2f} {duf_s:6.2f}s", flush=True)
-    return rows
+    print(f"\n{'the ground (voxtool)':36} {'ground':>9} | {'--ground-band -1: SA / DA / AA':>31} {'removed':>8} | "
+          f"{'default (0.3 m): SA / DA / AA':>30} {'removed':>8} | {'cost a scan':>11}")
+    for r in ground_rows:
+        g, v = r["ground_as_any_surface"], r["ground_judged"]
+        print(f"{r['input']:36} {r['ground_points']:>9,} | {g['SA']:13.2f} {g['DA']:6.2f} {g['AA']:6.2f} "
+              f"{100 * g['removed_share']:7.2f}% | {v['SA']:12.2f} {v['DA']:6.2f} {v['AA']:6.2f} "
+              f"{100 * v['removed_share']:7.2f}% | {r['ground_ms_per_scan']:8.1f} ms")
+    return rows, ground_rows
 
 
 def main() -> None:
@@ -177,9 +233,10 @@ def main() -> None:
         write_pcd_scans(street(2), Path(tmp) / "warm")
         run_voxtool(Path(tmp) / "warm", params)
         run_dufomap(Path(tmp) / "warm", params)
-        rows += real_movers(Path(args.data), Path(tmp), out, params, args.repeat)
+        real_rows, ground_rows = real_movers(Path(args.data), Path(tmp), out, params, args.repeat)
+        rows += real_rows
         if args.only == "real-movers":
-            out.write_text(json.dumps({"params": params.__dict__, "rows": rows}, indent=2))
+            out.write_text(json.dumps({"params": params.__dict__, "rows": rows, "ground": ground_rows}, indent=2))
             print(f"\nwritten {out}")
             return
         print()
@@ -214,7 +271,7 @@ def main() -> None:
                      "picture": str(picture)})
         print(f"{name:32} {vox.size:>9,} | {int(vox.sum()):>16,} {vox_s:6.2f}s | {int(duf.sum()):>16,} {duf_s:6.2f}s | "
               f"{picture} ({both:,} removed by both)")
-    out.write_text(json.dumps({"params": params.__dict__, "rows": rows}, indent=2))
+    out.write_text(json.dumps({"params": params.__dict__, "rows": rows, "ground": ground_rows}, indent=2))
     print(f"\nwritten {out}")
 
 

@@ -13,8 +13,15 @@ identity VIEWPOINT and no poses: a driver's dump as users have them. Source:
 the public repository udacity/SFND_Lidar_Obstacle_Detection (commit
 ef15da2bc172359e7d6edfdd156a2a243d10977e), src/sensors/data/pcd/data_1.
 
+nebula: .fetched/nebula/<sensor>/, the ROS 2 bags (sqlite3, with metadata.yaml) of the public repository
+tier4/nebula (commit 606ac41f1f136333915f0114736f2f828e9d2789, Apache-2.0), its decoders' test inputs:
+real Velodyne VLP-16/VLP-32/VLS-128 and Hesai Pandar 40P/64/QT64/QT128/XT16/XT32/XT32M logs of four
+raw packet messages each (velodyne_msgs/VelodyneScan, pandar_msgs/PandarScan: no points until a
+driver decodes them), and two Continental radar logs. 3D LiDAR logs as drivers record them.
+
     python scripts/fetch_samples.py kitti GIT_DIR     # a clone or mirror of rancheng/mini_kitti_dataset
     python scripts/fetch_samples.py udacity GIT_DIR   # a clone or mirror of udacity/SFND_Lidar_Obstacle_Detection
+    python scripts/fetch_samples.py nebula GIT_DIR    # a clone or mirror of tier4/nebula
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ import sys
 from pathlib import Path
 
 COMMIT = "2a361538a576d0c675b537ee3bffecda85905609"
-SEQUENCES = ("00", "05")
+SEQUENCES = ("00", "01", "02", "04", "05", "06", "07", "08", "09", "10")  # 03: its day's Tr is not quoted here
 TR = {
     "2011_10_03": "4.276802385584e-04 -9.999672484946e-01 -8.084491683471e-03 -1.198459927713e-02 "
                   "-7.210626507497e-03 8.081198471645e-03 -9.999413164504e-01 -5.403984729748e-02 "
@@ -55,6 +62,31 @@ def udacity(git_dir: str) -> None:
     print(f"{out}: {len(names)} scans")
 
 
+NEBULA_COMMIT = "606ac41f1f136333915f0114736f2f828e9d2789"
+
+
+def nebula(git_dir: str) -> None:
+    git = _git(git_dir)
+    out = FETCHED / "nebula"
+    names = git("ls-tree", "-r", "--name-only", NEBULA_COMMIT, "src").decode().split()
+    bags = sorted({n.rsplit("/", 1)[0] for n in names if "/decoder_ground_truth/" in n and n.endswith(".db3")})
+    laid = 0
+    for bag in bags:
+        sensor = bag.split("/decoder_ground_truth/")[1].split("/")[0]
+        folder = out / (sensor if not bag.endswith("all_points") else f"{sensor}_all_points")
+        try:
+            files = {n.rsplit("/", 1)[1]: git("show", f"{NEBULA_COMMIT}:{n}") for n in names if n.rsplit("/", 1)[0] == bag}
+        except subprocess.CalledProcessError:  # a Git LFS file the copy does not hold
+            print(f"{bag}: not in this copy, left out")
+            continue
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, data in files.items():
+            (folder / name).write_bytes(data)
+        laid += 1
+    (out / "PROVENANCE.md").write_text(__doc__)
+    print(f"{out}: {laid} bags")
+
+
 def kitti(git_dir: str) -> None:
     git = _git(git_dir)
 
@@ -74,4 +106,4 @@ def kitti(git_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    {"kitti": kitti, "udacity": udacity}[sys.argv[1]](sys.argv[2])
+    {"kitti": kitti, "udacity": udacity, "nebula": nebula}[sys.argv[1]](sys.argv[2])

@@ -47,6 +47,17 @@ def udacity_dump() -> Path:
     return root
 
 
+@pytest.fixture(scope="session")
+def nebula_bags() -> Path:
+    """ROS 2 bags of real 3D LiDAR (and radar) packets from TIER IV's nebula drivers' tests
+    (scripts/fetch_samples.py nebula)."""
+    root = FETCHED / "nebula"
+    bags = sorted(p for p in root.glob("*") if (p / "metadata.yaml").is_file())
+    if not bags:
+        pytest.skip("the nebula bags are absent (python scripts/fetch_samples.py nebula GIT_DIR)")
+    return bags
+
+
 def cli(*args):
     """Run the voxtool command line in this process: (exit code, stdout, stderr)."""
     from click.testing import CliRunner

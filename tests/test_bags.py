@@ -4,6 +4,7 @@ the same scans in PCD files; bad bags and bad scans give one line, or are skippe
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -62,6 +63,22 @@ def test_the_storage_file_of_a_ros2_bag_reads_as_its_bag(tmp_path, scans, pcd_di
     storage = next(path.glob("*.mcap"))
     assert open_source(storage).kind == "rosbag2"
     assert leaves_of(storage)[0] == leaves_of(pcd_dir)[0]
+
+
+@pytest.mark.parametrize("kind", [k for k in BAG_KINDS if k != "ros1"])
+def test_a_ros2_bag_with_blank_metadata_fields_reads_as_ros2_bag_reads_it(tmp_path, scans, pcd_dir, kind):
+    """Some rosbag2 releases wrote `storage_identifier: ""` or a topic's `serialization_format:
+    ""` (TIER IV's published decoder test bags have both): read with the storage the files'
+    extension says and CDR, as `ros2 bag` does; the bag's own folder is left as it was."""
+    path = write_bag(bag_path(tmp_path, kind), scans, kind)
+    meta = path / "metadata.yaml"
+    text = meta.read_text()
+    blank = re.sub(r"(storage_identifier:) \S+", r'\1 ""', re.sub(r"(serialization_format:) \S+", r'\1 ""', text))
+    assert blank != text
+    meta.write_text(blank)
+    files = sorted(p.name for p in path.iterdir())
+    assert leaves_of(path)[0] == leaves_of(pcd_dir)[0]
+    assert meta.read_text() == blank and sorted(p.name for p in path.iterdir()) == files
 
 
 @pytest.mark.parametrize("kind", ["ros1", "ros2-db3"])

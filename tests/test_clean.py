@@ -170,62 +170,107 @@ def test_void_is_where_one_scan_knew_the_whole_cube(pose_error):
     assert np.isin(got, morton_encode(morton_decode(judged))).all()
 
 
-def test_a_point_is_dynamic_when_enough_of_its_group_lies_in_void():
-    """Brute force, scan by scan with breadth-first searches over sets of voxels: the points in
-    crossed voxels within GROUP_STEPS steps of a void voxel (through such voxels), in groups of
-    26-connected voxels, dynamic where at least MIN_VOID_POINTS points and group_share of the
-    group's points lie in void voxels."""
-    from voxtool.clean import GROUP_STEPS, MIN_VOID_POINTS
+def _random_void_map(seed: int, params: CleanParams):
+    """A void map of random crossed and void unit voxels, and random scans in them."""
     from voxtool.keys import coords_to_keys, morton_encode
 
-    params = CleanParams(resolution=1.0, group_share=0.4)
     vm = VoidMap(params, threads=2)
-    rng = np.random.default_rng(3)
+    rng = np.random.default_rng(seed)
     cells = rng.integers(-9, 9, (1800, 3))
     crossed, void = cells[rng.random(1800) < 0.7], cells[rng.random(1800) < 0.08]
     vm.crossed.add_codes(morton_encode(coords_to_keys(crossed + 0.5, 1.0)))
     vm.void.add_codes(morton_encode(coords_to_keys(void + 0.5, 1.0)))
     scans = [rng.uniform(-9, 9, (n, 3)).astype(np.float32) for n in (0, 2000, 4000, 3)]
-    starts = np.concatenate([[0], np.cumsum([len(s) for s in scans])])
-    got = dynamic_points(vm, np.concatenate(scans), starts)
+    return vm, scans, set(map(tuple, crossed.tolist())), set(map(tuple, void.tolist()))
 
-    crossed_set, void_set = set(map(tuple, crossed.tolist())), set(map(tuple, void.tolist()))
+
+def _groups_brute_force(points, crossed_set, void_set, params, may_seed=None):
+    """One scan's dynamic points by breadth-first searches over sets of voxels (seeds: the void
+    voxels of the points `may_seed` allows, all if None), and how many seen voxels lie beyond
+    GROUP_STEPS of any seed."""
+    from voxtool.clean import GROUP_STEPS, MIN_VOID_POINTS
+
     around = [tuple(d) for d in cube_offsets(1).tolist()]
 
     def step(c):
         return [(c[0] + d[0], c[1] + d[1], c[2] + d[2]) for d in around]
 
-    want, far_members = [], 0
-    for points in scans:
-        cells_of = [tuple(c) for c in np.floor(points).astype(int).tolist()]
-        seen = {c for c in cells_of if c in crossed_set or c in void_set}
-        steps = {c: 0 for c in seen if c in void_set and c in cells_of}
-        frontier = list(steps)
-        for k in range(1, GROUP_STEPS + 1):
-            frontier = [n for c in frontier for n in step(c) if n in seen and n not in steps]
-            for n in frontier:
-                steps.setdefault(n, k)
-        far_members += len(seen) - len(steps)
-        group = {}
-        for start in steps:
-            if start in group:
-                continue
-            group[start], queue = start, [start]
-            while queue:
-                for n in step(queue.pop()):
-                    if n in steps and n not in group:
-                        group[n] = start
-                        queue.append(n)
-        size, voids = {}, {}
-        for c in cells_of:
-            if c in group:
-                size[group[c]] = size.get(group[c], 0) + 1
-                voids[group[c]] = voids.get(group[c], 0) + (c in void_set)
-        want += [c in group and voids[group[c]] >= max(MIN_VOID_POINTS, params.group_share * size[group[c]])
-                 for c in cells_of]
-    want = np.array(want, dtype=bool)
-    assert want.any() and (~want).any() and far_members > 0
+    cells_of = [tuple(c) for c in np.floor(points).astype(int).tolist()]
+    seen = {c for c in cells_of if c in crossed_set or c in void_set}
+    seeding = {c for c, ok in zip(cells_of, np.ones(len(cells_of), bool) if may_seed is None else may_seed) if ok}
+    steps = {c: 0 for c in seen if c in void_set and c in seeding}
+    frontier = list(steps)
+    for k in range(1, GROUP_STEPS + 1):
+        frontier = [n for c in frontier for n in step(c) if n in seen and n not in steps]
+        for n in frontier:
+            steps.setdefault(n, k)
+    group = {}
+    for start in steps:
+        if start in group:
+            continue
+        group[start], queue = start, [start]
+        while queue:
+            for n in step(queue.pop()):
+                if n in steps and n not in group:
+                    group[n] = start
+                    queue.append(n)
+    size, voids = {}, {}
+    for c in cells_of:
+        if c in group:
+            size[group[c]] = size.get(group[c], 0) + 1
+            voids[group[c]] = voids.get(group[c], 0) + (c in void_set)
+    dynamic = [c in group and voids[group[c]] >= max(MIN_VOID_POINTS, params.group_share * size[group[c]])
+               for c in cells_of]
+    return np.array(dynamic, dtype=bool), len(seen) - len(steps)
+
+
+def test_a_point_is_dynamic_when_enough_of_its_group_lies_in_void():
+    """Brute force, scan by scan with breadth-first searches over sets of voxels: the points in
+    crossed voxels within GROUP_STEPS steps of a void voxel (through such voxels), in groups of
+    26-connected voxels, dynamic where at least MIN_VOID_POINTS points and group_share of the
+    group's points lie in void voxels."""
+    params = CleanParams(resolution=1.0, group_share=0.4)
+    vm, scans, crossed_set, void_set = _random_void_map(3, params)
+    starts = np.concatenate([[0], np.cumsum([len(s) for s in scans])])
+    got = dynamic_points(vm, np.concatenate(scans), starts)
+    judged = [_groups_brute_force(points, crossed_set, void_set, params) for points in scans]
+    want = np.concatenate([d for d, _ in judged])
+    assert want.any() and (~want).any() and sum(far for _, far in judged) > 0
     np.testing.assert_array_equal(got, want)
+
+
+def test_with_the_ground_apart_only_points_above_it_seed_groups_and_groups_take_the_ground_under_them():
+    """Brute force: each scan's groups seeded by the void points above the ground alone (ground
+    points still join them and count in their share); then a ground point is dynamic where the
+    lowest dynamic point above the ground in its voxel column (or in the 8 columns around, for
+    a ground point in a void voxel) stands at most ground_band + a voxel above it."""
+    params = CleanParams(resolution=1.0, group_share=0.4, ground_band=2.0)
+    vm, scans, crossed_set, void_set = _random_void_map(4, params)
+    points = np.concatenate(scans)
+    starts = np.concatenate([[0], np.cumsum([len(s) for s in scans])])
+    is_ground = points[:, 2] < -5.0
+    cells = np.floor(points).astype(np.int64) + 32768
+    columns = cells[:, 0] << 16 | cells[:, 1]
+    got = dynamic_points(vm, points, starts, (is_ground, columns))
+    want = np.zeros(points.shape[0], dtype=bool)
+    grouped = np.zeros(points.shape[0], dtype=bool)
+    for a, b in zip(starts[:-1], starts[1:]):
+        grouped[a:b] = _groups_brute_force(points[a:b], crossed_set, void_set, params, ~is_ground[a:b])[0]
+        want[a:b] = grouped[a:b]
+        lowest = {}
+        for i in range(a, b):
+            if grouped[i] and not is_ground[i]:
+                lowest[(cells[i, 0], cells[i, 1])] = min(lowest.get((cells[i, 0], cells[i, 1]), np.inf), points[i, 2])
+        for i in range(a, b):
+            if not is_ground[i] or want[i]:
+                continue
+            void = tuple(cells[i] - 32768) in void_set
+            near = [(cells[i, 0] + dx, cells[i, 1] + dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if void or dx == dy == 0]
+            want[i] = min(lowest.get(c, np.inf) for c in near) - points[i, 2] <= 2.0 + 1.0
+    assert (want & is_ground & ~grouped).any() and (~want & is_ground).any() and (want & ~is_ground).any()
+    np.testing.assert_array_equal(got, want)
+    # the ground judged as any surface is another answer (the rule matters on this input)
+    assert not np.array_equal(dynamic_points(vm, points, starts), want)
 
 
 # -- generated scenes ---------------------------------------------------------------------------
@@ -270,6 +315,63 @@ def test_the_street_scores_high(tmp_path):
     assert score["SA"] >= 99.5 and score["DA"] >= 45.0, score
     # labels follow the points scan by scan
     assert cleaned.scan_starts[-1] == truth.shape[0] and len(cleaned.scan_starts) == 16
+
+
+def _posed_with_error(scans_and_truth, seed=0):
+    """Scans (world points, origin, truth) placed by poses with survey-grade error, as a stream."""
+    from pathlib import Path
+
+    from voxtool.sources import ScanStream
+    from voxtool.sources.scan import Scan
+    from voxtool.synthetic import PoseError
+
+    rng = np.random.default_rng(seed)
+    scans, truths = [], []
+    for i, (points, origin, truth) in enumerate(scans_and_truth):
+        points, origin = PoseError().apply(points, origin, rng)
+        scans.append(Scan(points, origin.astype(np.float32), index=i))
+        truths.append(truth)
+    return (lambda: ScanStream("generated", Path("scans"), len(scans), iter(list(scans)))), np.concatenate(truths)
+
+
+def test_a_mover_s_lowest_points_go_with_it_under_pose_error():
+    """A street seen by a 64-beam car LiDAR whose poses carry survey-grade error: with the ground
+    apart (the default), the movers' points in their lowest 0.3 m (wheels, feet: ground by
+    height) go with their groups far more than when the ground is judged as any surface, and
+    no more of the static world goes."""
+    lidar = Lidar(beams=64, columns=1024, min_elevation_deg=-24.8, max_elevation_deg=2.0, max_range=60.0)
+    stream, truth = _posed_with_error(((p, o, m) for p, o, _, m in street(10, seed=1, lidar=lidar).scans()))
+    on = clean_stream(stream(), CleanParams(), threads=2, progress=False)
+    off = clean_stream(stream(), CleanParams(ground_band=-1.0), threads=2, progress=False)
+    lowest = truth & (on.points[:, 2] < 0.3)  # the street's ground is z = 0
+    assert lowest.sum() > 1000
+    assert on.dynamic[lowest].mean() >= 0.85 > 0.6 >= off.dynamic[lowest].mean()
+    assert accuracy(on.dynamic, truth)["SA"] >= accuracy(off.dynamic, truth)["SA"] >= 99.5
+    assert on.figures["ground_points"] > 0.3 * truth.size and off.figures["ground_points"] is None
+
+
+def test_the_road_stays_on_real_car_frames_with_survey_grade_pose_error(kitti_sample):
+    """KITTI 05 frames 0-9 (120 k points each) with movers ray-traced into them, placed by poses
+    with survey-grade error: judged as any surface, the road goes where one scan's rays graze it
+    below where another saw it; with the ground apart, the issue's targets: SA >= 99 %, DA >= 92 %."""
+    from voxtool.synthetic import ground_height, insert_movers, traffic
+
+    seq = kitti_sample / "05"
+    scans = list(open_source(seq, SourceOptions(truth=str(seq / "labels"))).scans)
+    times = np.array([s.stamp_ns for s in scans], dtype=np.float64) / 1e9
+    origins = np.array([s.origin for s in scans], dtype=np.float64)
+    boxes = traffic(origins, times - times[0], ground_height(scans[0].points, origins[0]))
+
+    def traced():
+        for s, t in zip(scans, times - times[0]):
+            points, moving = insert_movers(s.points, s.origin, float(t), boxes)
+            yield points, s.origin, moving | s.extra["truth"]
+
+    stream, truth = _posed_with_error(traced(), seed=7)
+    on = accuracy(clean_stream(stream(), CleanParams(), progress=False).dynamic, truth)
+    off = accuracy(clean_stream(stream(), CleanParams(ground_band=-1.0), progress=False).dynamic, truth)
+    assert on["SA"] >= 99.0 and on["DA"] >= 92.0, on
+    assert off["SA"] < 99.0, off
 
 
 # -- the command line ------------------------------------------------------------------------------
@@ -331,6 +433,7 @@ def test_clean_shows_what_it_removed(tmp_path):
     (["-o", "static.pcd", "--pose-error", "9"], 2, "pose_error=9 must lie in 0..5"),
     (["-o", "static.pcd", "--sensor-noise", "-1"], 2, "sensor_noise=-1.0 must lie in"),
     (["-o", "static.pcd", "--group-share", "1.5"], 2, "1.5 is not in the range 0.0<=x<=1.0"),
+    (["-o", "static.pcd", "--ground-band", "nan"], 2, "ground_band=nan must be at most 10 metres"),
 ])
 def test_bad_parameters_are_one_line_and_write_nothing(tmp_path, monkeypatch, args, exit_code, message):
     monkeypatch.chdir(tmp_path)

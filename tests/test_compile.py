@@ -26,8 +26,9 @@ def test_first_runs_after_compile_compile_nothing(tmp_path):
     report = json.loads(voxtool(["compile", "--json"], env))
     assert {"build", "encode --codec cm", "merge", "export .mcap", "clean", "diff"} <= set(report["seconds"])
     saved = {p.name for p in cache.rglob("*.nbi")}
-    # the kernels of the build, the cm coder, clean and the hash map are in the cache
-    for kernel in ("raycast._make_scan_bricks", "octree.apply_bricks", "cm.", "clean.near_hits_table", "hashmap."):
+    # the kernels of the build, the cm coder, clean (and its ground) and the hash map are in the cache
+    for kernel in ("raycast._make_scan_bricks", "octree.apply_bricks", "cm.", "clean.near_hits_table", "hashmap.",
+                   "ground._min_along_rows"):
         assert any(kernel in name for name in saved), kernel
 
     env["NUMBA_DEBUG_CACHE"] = "1"

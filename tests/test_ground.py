@@ -152,3 +152,82 @@ def test_clean_pictures_colour_by_height_above_the_ground():
     assert np.abs(region(plain, plain_lit, 1, 8).mean(axis=0) - region(plain, plain_lit, 20, 29).mean(axis=0)).max() > 0.2
     code, _, err = cli("clean", "--sample", "--png", "x.png", "--above-ground", "0,2", "--view", "side")
     assert code == 2 and "top view" in err
+
+
+# -- the kernels against brute force --------------------------------------------------------------
+
+def _window_brute_force(a, half, take_min):
+    """Each cell's minimum (maximum) over the square window around it, ignoring cells without a
+    floor (NONE); NONE where the window holds none."""
+    from voxtool.ground import NONE
+
+    rows, cols = a.shape
+    out = np.full_like(a, NONE)
+    for r in range(rows):
+        for c in range(cols):
+            window = a[max(0, r - half):r + half + 1, max(0, c - half):c + half + 1]
+            values = window[window != NONE]
+            if values.size:
+                out[r, c] = values.min() if take_min else values.max()
+    return out
+
+
+@pytest.mark.parametrize("shape, half", [((9, 13), 1), ((9, 13), 2), ((17, 5), 4), ((6, 6), 7), ((1, 20), 3)])
+def test_window_filters_equal_brute_force(shape, half):
+    from voxtool.ground import NONE, _filter
+
+    rng = np.random.default_rng(half)
+    a = rng.integers(32700, 32800, shape).astype(np.int32)
+    a[rng.random(shape) < 0.3] = NONE
+    for take_min in (True, False):
+        np.testing.assert_array_equal(_filter(a, half, take_min), _window_brute_force(a, half, take_min))
+
+
+def test_fill_spreads_the_ground_ring_by_ring_as_brute_force_does():
+    """Each round, every unknown cell beside a known one takes the mean of its known 8-neighbours
+    (as known before the round), for the given number of rounds."""
+    from voxtool.ground import _fill
+
+    rng = np.random.default_rng(5)
+    height = rng.normal(0.0, 1.0, (15, 21))
+    known = rng.random(height.shape) < 0.05
+    want_h, want_k = height.copy(), known.copy()
+    for _ in range(3):
+        new_h, new_k = want_h.copy(), want_k.copy()
+        for r in range(15):
+            for c in range(21):
+                if want_k[r, c]:
+                    continue
+                around = [(r + i, c + j) for i in (-1, 0, 1) for j in (-1, 0, 1)
+                          if 0 <= r + i < 15 and 0 <= c + j < 21 and want_k[r + i, c + j]]
+                if around:
+                    new_h[r, c] = np.mean([want_h[p] for p in around])
+                    new_k[r, c] = True
+        want_h, want_k = new_h, new_k
+    _fill(height, known, 3)
+    np.testing.assert_array_equal(known, want_k)
+    np.testing.assert_allclose(height[known], want_h[want_k], rtol=0, atol=1e-12)
+    assert 0 < known.sum() < known.size
+
+
+def test_clean_s_ground_is_the_terrain_and_not_what_stands_on_it():
+    """clean.ground_points on points of a 10 % slope with boxes (their tops seen, not the ground
+    under them) and a canopy over seen ground: every terrain point is ground, and nothing more
+    than 0.3 m above the slope (with a column's width of slope and a voxel of rounding beyond) is."""
+    from voxtool.clean import ground_points
+
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(0.0, 40.0, (200_000, 2))
+    slope = 0.1 * xy[:, 0]
+    on_box = ((xy[:, 0] % 10.0) < 2.0) & ((xy[:, 1] % 10.0) < 2.0)  # 2 m x 2 m boxes: their tops, 1-2 m up
+    under_canopy = (np.abs(xy[:, 0] - 25.0) < 3.0) & (np.abs(xy[:, 1] - 25.0) < 3.0)
+    tops = 1.0 + (np.floor(xy[:, 0] / 10.0) + np.floor(xy[:, 1] / 10.0)) % 3 * 0.5
+    height = np.where(on_box, tops, rng.normal(0.0, 0.01, xy.shape[0]))
+    height[under_canopy & (rng.random(xy.shape[0]) < 0.5)] = rng.uniform(3.0, 4.0)  # a crown above seen ground
+    points = np.c_[xy, slope + height].astype(np.float32)
+    is_ground, columns = ground_points(points, 0.1, 0.3)
+    terrain = ~on_box & (height < 0.1)
+    assert is_ground[terrain].all()
+    assert not is_ground[height > 0.3 + 0.1 * 0.2 + 0.1].any()
+    keys = np.floor(points[:, :2].astype(np.float64) / 0.1).astype(np.int64) + 32768  # as OctoMap keys them
+    np.testing.assert_array_equal(columns, keys[:, 0] << 16 | keys[:, 1])

@@ -7,6 +7,7 @@ each bag written by rosbags' own writer."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -233,7 +234,7 @@ def test_an_empty_bag_is_one_line(tmp_path):
         pass
     code, _, err, out = _build(tmp_path, path)
     assert code == 3 and not out.exists()
-    assert "found 0 PointCloud2/LaserScan topics" in _one_error_line(err)
+    assert "no PointCloud2 or LaserScan topic to build from (its topics: none)" in _one_error_line(err)
 
 
 @pytest.mark.parametrize("keep", [0.2, 0.35, 0.7, 0.97])
@@ -325,3 +326,30 @@ def test_a_truncated_mcap_builds_the_scans_before_the_cut_with_skip(tmp_path, sh
     assert whole["scans"] == n
     a, b = cut_map.leaves(), whole_map.leaves()
     assert np.array_equal(a.codes, b.codes) and np.array_equal(a.values, b.values)
+
+
+def _declared_topics(bag) -> dict[str, tuple[str, int]]:
+    """A ROS 2 bag's topics as its metadata.yaml declares them: name -> (type, messages)."""
+    text = (bag / "metadata.yaml").read_text()
+    found = re.findall(r"name: (\S+)\s+type: (\S+).*?message_count: (\d+)", text, re.S)
+    return {name: (msgtype, int(count)) for name, msgtype, count in found}
+
+
+def test_logs_of_lidar_packets_are_one_line_that_says_to_decode_them(tmp_path, nebula_bags):
+    """Real ROS 2 bags recorded at the driver (Velodyne and Hesai packets, two radars; two of
+    them with metadata fields left blank): `info` lists the topics their metadata declares, and
+    `build` says in one line, exit 3, which topic holds packets and what turns them into points."""
+    for bag in nebula_bags:
+        declared = _declared_topics(bag)
+        assert declared, bag
+        code, text, err = cli("info", bag, "--json")
+        assert code == 0, (bag, err)
+        info = json.loads(text)
+        assert {t["topic"]: (t["type"], t["messages"]) for t in info["topics"]} == declared, bag
+        assert info["scan_topics"] == [] and "raw packets" in info["why"]
+        code, report, err, out = _build(tmp_path, bag)
+        assert code == 3 and not out.exists(), (bag, err)
+        line = _one_error_line(err)
+        topic, (msgtype, _) = next(iter(declared.items()))
+        assert f"{topic} ({msgtype}) holds the sensor driver's raw packets" in line, line
+        assert "turn them into PointCloud2 with that driver" in line

@@ -14,6 +14,11 @@ an object another scan saw through goes whole, the parts no scan saw through who
 near the ground, its edges) included, while a lone void voxel in a surface that rays grazed
 keeps its points. Everything else is static.
 
+The ground is apart (`ground_band`): points at most that high above the ground under all the
+scans' points (voxtool.ground) seed no group, since under pose error rays graze the road that
+another scan saw a few centimetres higher; a ground point goes with a moving group standing
+right above it (_moving_groups_over_ground).
+
 The maps hold a bit per voxel of what the exact OctoMap ray casting (voxtool.maps.octree's
 caster) crossed; docs/cleaning.md says how to tune it and docs/design/clean.md why it was
 chosen and what it was measured against.
@@ -48,6 +53,7 @@ class CleanParams:
     pose_error: int = 1  # d_p: voxels around a crossed voxel that one scan must know for it to be void
     max_range: float = -1.0  # rays are cut here (no void beyond); < 0 unlimited
     group_share: float = 0.15  # share of a group's points in void voxels that makes it dynamic
+    ground_band: float = 0.3  # metres above the scans' ground that are no evidence of a mover (< 0: none)
 
     def __post_init__(self) -> None:
         MapParams(resolution=self.resolution, max_range=self.max_range)  # the same checks as a map's
@@ -55,12 +61,16 @@ class CleanParams:
             raise ParameterError(f"sensor_noise={self.sensor_noise} must lie in [0, 100 voxels] metres")
         if not 0 <= self.pose_error <= 5:
             raise ParameterError(f"pose_error={self.pose_error} must lie in 0..5 voxels")
+        if not (np.isfinite(self.ground_band) and self.ground_band <= 10.0):
+            raise ParameterError(f"ground_band={self.ground_band} must be at most 10 metres (< 0: off)")
         if not 0.0 <= self.group_share <= 1.0:
             raise ParameterError(f"group_share={self.group_share} must lie in [0, 1]")
 
 
 MIN_VOID_POINTS = 3  # a group with fewer points in void voxels stays: one stray ray is no mover
 SPLIT_SCAN = 10_000  # points: a smaller scan's rays are cast on one thread
+GROUND_COLUMN_M = 0.2  # the ground's columns (metres): coarser than 0.1 m voxels costs 4x less, 2 cm on a 10 % slope
+GROUND_CELLS = 1 << 20  # at most this many ground columns: coarser over a larger area (its cost: 0.1 s a million)
 GROUP_STEPS = 4  # voxels a group reaches beyond its void points (a mover's unseen bottom and edges)
 
 
@@ -238,11 +248,29 @@ class VoidMap:
 CLASSIFY_CHUNK = 131_072  # points a thread looks up at a time
 
 
-def dynamic_points(void_map: VoidMap, points: np.ndarray, scan_starts: np.ndarray | None = None) -> np.ndarray:
+def ground_points(points: np.ndarray, resolution: float, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which points lie at most `band` metres above the ground under them (voxtool.ground: the
+    lowest surface of all the scans' points, objects filtered out, in columns of
+    GROUND_COLUMN_M), and each point's voxel column (key x << 16 | key y)."""
+    from voxtool.ground import ground_of
+    from voxtool.keys import coords_to_keys
+
+    keys = coords_to_keys(points, resolution).astype(np.int64)
+    extent = (keys[:, :2].max(axis=0) - keys[:, :2].min(axis=0) + 1).astype(np.float64)
+    column = max(1, int(round(GROUND_COLUMN_M / resolution)),
+                 int(np.ceil(np.sqrt(extent[0] * extent[1] / GROUND_CELLS))))  # a long drive: coarser columns
+    ground = ground_of(keys, resolution, column=column)
+    is_ground = points[:, 2] - ground.under(keys[:, 0], keys[:, 1]) <= band  # NaN (no ground known): not ground
+    return is_ground, keys[:, 0] << 16 | keys[:, 1]
+
+
+def dynamic_points(void_map: VoidMap, points: np.ndarray, scan_starts: np.ndarray | None = None,
+                   ground: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Which world points are dynamic (the module's rule): every point's voxel looked up in
     both maps (chunks of points on the map's threads), then the groups of each scan that has
     points in void voxels (`scan_starts`: where each scan's points start, and their count
-    last; one scan if None)."""
+    last; one scan if None). `ground`: ground_points() of the points, or None to judge the
+    ground as any other surface."""
     from voxtool.parallel import run_parts
 
     n = points.shape[0]
@@ -264,7 +292,11 @@ def dynamic_points(void_map: VoidMap, points: np.ndarray, scan_starts: np.ndarra
     def judge(i):
         a, b = int(starts[i]), int(starts[i + 1])
         if b > a:
-            dynamic[a:b] = _moving_groups(void_map, points[a:b], void[a:b], seen[a:b])
+            if ground is None:
+                dynamic[a:b] = _moving_groups(void_map, points[a:b], void[a:b], seen[a:b])
+            else:
+                dynamic[a:b] = _moving_groups_over_ground(void_map, points[a:b], void[a:b], seen[a:b],
+                                                          ground[0][a:b], ground[1][a:b])
 
     run_parts(void_map.threads, judge, scans_with_void.tolist())
     return dynamic
@@ -276,16 +308,18 @@ def _voxel_codes(void_map: VoidMap, points: np.ndarray) -> np.ndarray:
     return point_codes(points, void_map.params.resolution)
 
 
-def _moving_groups(void_map: VoidMap, points: np.ndarray, void: np.ndarray, seen: np.ndarray) -> np.ndarray:
+def _moving_groups(void_map: VoidMap, points: np.ndarray, void: np.ndarray, seen: np.ndarray,
+                   seeds_from: np.ndarray | None = None) -> np.ndarray:
     """One scan's points: those in crossed voxels at most GROUP_STEPS voxel steps (through
-    such voxels) from a point in a void voxel, in groups of 26-connected voxels; dynamic where
-    enough of a group's points lie in void voxels."""
+    such voxels) from a point in a void voxel (of the points `seeds_from` allows, all if None),
+    in groups of 26-connected voxels; dynamic where enough of a group's points lie in void
+    voxels."""
     from voxtool.kernels.clean import voxel_groups, within_steps
 
     members = np.flatnonzero(seen)
     voxels, voxel_of = np.unique(_voxel_codes(void_map, points[members]), return_inverse=True)
     seeds = np.zeros(voxels.shape[0], dtype=bool)
-    seeds[voxel_of[void[members]]] = True
+    seeds[voxel_of[(void if seeds_from is None else void & seeds_from)[members]]] = True
     reached = within_steps(voxels, seeds, GROUP_STEPS)
     voxels = voxels[reached]
     kept = reached[voxel_of]
@@ -297,6 +331,34 @@ def _moving_groups(void_map: VoidMap, points: np.ndarray, void: np.ndarray, seen
     moving = (in_void >= MIN_VOID_POINTS) & (in_void >= void_map.clean.group_share * size)
     dynamic = np.zeros(points.shape[0], dtype=bool)
     dynamic[members] = moving[group]
+    return dynamic
+
+
+NEAR_COLUMNS = [0] + [(dx << 16) + dy for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]  # 0: its own
+
+
+def _moving_groups_over_ground(void_map: VoidMap, points: np.ndarray, void: np.ndarray, seen: np.ndarray,
+                               ground: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """One scan's points judged with the ground apart. A ground point in a void voxel seeds no
+    group (under pose error rays graze the road another scan saw a few centimetres higher), but
+    ground points still join the groups the points above the ground seed and count in their
+    share (_moving_groups). Then a ground point goes with a moving group whose lowest point above
+    the ground, in its voxel column (or the 8 around, where the ground point is void itself),
+    stands at most ground_band and a voxel above it: the wheels and feet beyond the group's
+    GROUP_STEPS."""
+    dynamic = _moving_groups(void_map, points, void, seen, seeds_from=~ground)
+    moving = np.flatnonzero(dynamic & ~ground)
+    if moving.shape[0] == 0:
+        return dynamic
+    order = np.lexsort((points[moving, 2], columns[moving]))  # by column, then height
+    moving_columns, first = np.unique(columns[moving[order]], return_index=True)
+    lowest = points[moving[order[first]], 2]  # each such column's lowest moving point
+    low = np.flatnonzero(ground)
+    reach = void_map.clean.ground_band + void_map.params.resolution
+    for offset in NEAR_COLUMNS:
+        pick = low if offset == 0 else low[void[low]]
+        at = np.minimum(np.searchsorted(moving_columns, columns[pick] + offset), moving_columns.shape[0] - 1)
+        dynamic[pick] |= (moving_columns[at] == columns[pick] + offset) & (lowest[at] - points[pick, 2] <= reach)
     return dynamic
 
 
@@ -336,7 +398,9 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     points = np.concatenate(clouds) if clouds else np.empty((0, 3), dtype=np.float32)
     starts = np.zeros(len(clouds) + 1, dtype=np.int64)
     np.cumsum([c.shape[0] for c in clouds], out=starts[1:])
-    dynamic = dynamic_points(void_map, points, starts)
+    judge_ground = params.ground_band >= 0 and points.shape[0] > 0
+    ground = ground_points(points, params.resolution, params.ground_band) if judge_ground else None
+    dynamic = dynamic_points(void_map, points, starts, ground)
     t_classify = time.perf_counter() - t0
     built = report.to_dict()
     figures = {
@@ -344,6 +408,7 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
         "points_read": built["points"], "points_dropped": built["points_dropped"],
         "points_in": int(points.shape[0]), "points_kept": int(points.shape[0] - dynamic.sum()),
         "points_removed": int(dynamic.sum()), "void_map_bytes": void_map.used_bytes(),
+        "ground_points": int(ground[0].sum()) if ground is not None else None,
         "threads": void_map.threads, "params": asdict(params),
         "timings_s": {"jit": built["timings_s"]["jit"], "read": round(t_read + built["timings_s"]["read"], 6),
                       "raycast": built["timings_s"]["raycast"], "void_update": built["timings_s"]["update"],

@@ -47,119 +47,190 @@ def parse_above_ground(text: str | None) -> tuple[float, float] | None:
 
 
 @njit(cache=True, nogil=True)
-def _filter_rows(a, half, take_min, out):
-    """out[r, c]: the minimum (or maximum) of a[r, c - half .. c + half], in time linear in the
-    row whatever the window (a monotonic queue of candidates)."""
+def _min_along_rows(a, half):
+    """Each cell's minimum over cells c - half .. c + half of its row, in three passes whatever
+    the window (van Herk / Gil-Werman: running minima forward and backward within blocks of the
+    window's length; any window covers the tail of one block and the head of the next). Cells
+    beyond the row's ends never win."""
     rows, cols = a.shape
-    queue = np.empty(cols, dtype=np.int64)
+    w = 2 * half + 1
+    size = cols + 2 * half  # padded: cell c is cell c + half here
+    forward = np.empty(size, dtype=a.dtype)
+    backward = np.empty(size, dtype=a.dtype)
+    out = np.empty_like(a)
     for r in range(rows):
-        head = tail = 0
-        for i in range(cols + half):
-            if i < cols:
-                v = a[r, i]
-                while tail > head and ((a[r, queue[tail - 1]] >= v) if take_min else (a[r, queue[tail - 1]] <= v)):
-                    tail -= 1
-                queue[tail] = i
-                tail += 1
-            c = i - half
-            if c < 0:
-                continue
-            while queue[head] < c - half:
-                head += 1
-            out[r, c] = a[r, queue[head]]
+        forward[:half] = NONE
+        forward[half:half + cols] = a[r]
+        forward[half + cols:] = NONE
+        backward[:] = forward
+        for i in range(1, size):
+            if i % w and forward[i - 1] < forward[i]:
+                forward[i] = forward[i - 1]
+        for i in range(size - 2, -1, -1):
+            if (i + 1) % w and backward[i + 1] < backward[i]:
+                backward[i] = backward[i + 1]
+        for c in range(cols):  # the window c - half .. c + half is padded cells c .. c + 2 half
+            out[r, c] = min(backward[c], forward[c + 2 * half])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _min_down_columns(a, half):
+    """_min_along_rows down the columns, whole rows at a time (contiguous, no transpose)."""
+    rows, cols = a.shape
+    w = 2 * half + 1
+    size = rows + 2 * half
+    forward = np.full((size, cols), NONE, dtype=a.dtype)
+    forward[half:half + rows] = a
+    backward = forward.copy()
+    for i in range(1, size):
+        if i % w:
+            for c in range(cols):
+                if forward[i - 1, c] < forward[i, c]:
+                    forward[i, c] = forward[i - 1, c]
+    for i in range(size - 2, -1, -1):
+        if (i + 1) % w:
+            for c in range(cols):
+                if backward[i + 1, c] < backward[i, c]:
+                    backward[i, c] = backward[i + 1, c]
+    return np.minimum(backward[:rows], forward[2 * half:])
 
 
 def _filter(a: np.ndarray, half: int, take_min: bool) -> np.ndarray:
-    """A square window's minimum or maximum of the columns that have a floor (separable: rows,
-    then columns). Columns without one (NONE) never win: NONE is above every key for a minimum,
-    and is made -1 (below every key) for a maximum."""
-    work = a if take_min else np.where(a == NONE, -1, a).astype(np.int32)
-    rows = np.empty_like(work)
-    _filter_rows(work, half, take_min, rows)
-    columns = np.ascontiguousarray(rows.T)
-    out = np.empty_like(columns)
-    _filter_rows(columns, half, take_min, out)
-    out = np.ascontiguousarray(out.T)
-    return out if take_min else np.where(out == -1, NONE, out).astype(np.int32)
+    """A square window's minimum or maximum of the columns that have a floor (separable: along
+    rows, then down columns). Columns without one (NONE) never win a minimum; a maximum is the
+    minimum of the negated keys, where a column without a floor is +1, above every negated key."""
+    if take_min:
+        return _min_down_columns(_min_along_rows(a, half), half)
+    negated = np.where(a == NONE, 1, -a).astype(np.int32)
+    out = _min_down_columns(_min_along_rows(negated, half), half)
+    return np.where(out == 1, NONE, -out).astype(np.int32)
 
 
 @njit(cache=True, nogil=True)
 def _fill(ground, known, rounds):
-    """Spread known ground into unknown cells, ring by ring (the mean of known 8-neighbours),
-    for `rounds` rings."""
+    """Spread known ground into unknown cells, ring by ring (each new cell the mean of its known
+    8-neighbours), for `rounds` rings: only the cells beside the last ring are visited."""
     rows, cols = ground.shape
+    queued = known.copy()  # known, or already a candidate of the next ring
+    ring = np.empty(rows * cols, dtype=np.int64)
+    m = 0
+    for r in range(rows):  # the first candidates: unknown cells beside known ones
+        for c in range(cols):
+            if known[r, c]:
+                continue
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    rr, cc = r + dr, c + dc
+                    if not queued[r, c] and 0 <= rr < rows and 0 <= cc < cols and known[rr, cc]:
+                        queued[r, c] = True
+                        ring[m] = r * cols + c
+                        m += 1
+    values = np.empty(rows * cols)
     for _ in range(rounds):
-        new_ground = ground.copy()
-        new_known = known.copy()
-        changed = False
-        for r in range(rows):
-            for c in range(cols):
-                if known[r, c]:
-                    continue
-                total = 0.0
-                n = 0
-                for dr in range(-1, 2):
-                    for dc in range(-1, 2):
-                        rr, cc = r + dr, c + dc
-                        if 0 <= rr < rows and 0 <= cc < cols and known[rr, cc]:
-                            total += ground[rr, cc]
-                            n += 1
-                if n:
-                    new_ground[r, c] = total / n
-                    new_known[r, c] = True
-                    changed = True
-        ground[:, :] = new_ground
-        known[:, :] = new_known
-        if not changed:
+        if m == 0:
             break
+        for k in range(m):  # each candidate from the cells known before this ring
+            r, c = ring[k] // cols, ring[k] % cols
+            total = 0.0
+            n = 0
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    rr, cc = r + dr, c + dc
+                    if 0 <= rr < rows and 0 <= cc < cols and known[rr, cc]:
+                        total += ground[rr, cc]
+                        n += 1
+            values[k] = total / n
+        for k in range(m):
+            r, c = ring[k] // cols, ring[k] % cols
+            ground[r, c] = values[k]
+            known[r, c] = True
+        m_next = 0
+        start = m  # the next ring goes after this one in `ring`, then moves down
+        for k in range(m):
+            r, c = ring[k] // cols, ring[k] % cols
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    rr, cc = r + dr, c + dc
+                    if 0 <= rr < rows and 0 <= cc < cols and not queued[rr, cc]:
+                        queued[rr, cc] = True
+                        ring[start + m_next] = rr * cols + cc
+                        m_next += 1
+        ring[:m_next] = ring[start:start + m_next]
+        m = m_next
+
+
+@njit(cache=True, nogil=True)
+def _under(kx, ky, height, x0, y0, column):
+    out = np.empty(kx.shape[0])
+    rows, cols = height.shape
+    for i in range(kx.shape[0]):
+        r, c = ky[i] // column - y0, kx[i] // column - x0
+        out[i] = height[r, c] if 0 <= r < rows and 0 <= c < cols else np.nan
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _floor(keys, column, x0, y0, rows, cols):
+    """Each column's (`column` x `column` voxels) lowest key z among `keys` (N, 3), duplicates
+    allowed; NONE where none."""
+    floor = np.full((rows, cols), NONE, dtype=np.int32)
+    for i in range(keys.shape[0]):
+        r, c, z = keys[i, 1] // column - y0, keys[i, 0] // column - x0, keys[i, 2]
+        if z < floor[r, c]:
+            floor[r, c] = z
+    return floor
 
 
 @dataclass
 class Ground:
-    """Ground height (metres, at the voxel's bottom face) per map column; NaN where unknown.
-    Row 0 is the lowest y, column 0 the lowest x, of the columns from key (x0, y0)."""
+    """Ground height (metres, at the voxel's bottom face) per column of `column` x `column`
+    voxels; NaN where unknown. Row 0 is the lowest y, column 0 the lowest x, of the columns from
+    (x0, y0) (keys // column)."""
 
     height: np.ndarray  # float64 (rows, cols)
     x0: int
     y0: int
     resolution: float
+    column: int = 1
 
     def under(self, kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
         """The ground's height under columns (kx, ky) (key arrays of one shape); NaN where it is
         not known or the column lies outside the grid."""
-        row, col = np.asarray(ky) - self.y0, np.asarray(kx) - self.x0
-        inside = (row >= 0) & (row < self.height.shape[0]) & (col >= 0) & (col < self.height.shape[1])
-        out = np.full(row.shape, np.nan)
-        out[inside] = self.height[row[inside], col[inside]]
-        return out
+        kx, ky = np.asarray(kx), np.asarray(ky)
+        out = _under(kx.astype(np.int64).ravel(), ky.astype(np.int64).ravel(), self.height, self.x0, self.y0,
+                     self.column)
+        return out.reshape(kx.shape)
 
 
-def ground_of(keys: np.ndarray, resolution: float, params: GroundParams = GroundParams()) -> Ground:
-    """The ground under occupied voxels given as finest keys (N, 3)."""
+def ground_of(keys: np.ndarray, resolution: float, params: GroundParams = GroundParams(),
+              column: int = 1) -> Ground:
+    """The ground under occupied voxels given as finest keys (N, 3; repeats allowed), per
+    column of `column` x `column` voxels (heights stay at the voxels' resolution)."""
+    keys = np.asarray(keys, dtype=np.int64)
     if keys.shape[0] == 0:
         raise ParameterError("the map holds no occupied voxel: there is no ground to find")
-    x0, y0 = int(keys[:, 0].min()), int(keys[:, 1].min())
-    cols, rows = int(keys[:, 0].max()) - x0 + 1, int(keys[:, 1].max()) - y0 + 1
+    x0, y0 = int(keys[:, 0].min()) // column, int(keys[:, 1].min()) // column
+    cols, rows = int(keys[:, 0].max()) // column - x0 + 1, int(keys[:, 1].max()) // column - y0 + 1
     if rows * cols > 1 << 28:
         raise ParameterError(f"the ground grid would have {cols} x {rows} columns; --crop the map first")
-    floor = np.full(rows * cols, NONE, dtype=np.int32)
-    np.minimum.at(floor, (keys[:, 1] - y0) * cols + (keys[:, 0] - x0), keys[:, 2].astype(np.int32))
-    floor = floor.reshape(rows, cols)
+    floor = _floor(keys, column, x0, y0, rows, cols)
+    width = resolution * column  # of a column, metres
     surface = floor.copy()
     ground = floor != NONE
     window = 1
     previous = 0
-    while window * resolution <= params.max_window_m:
+    while window * width <= params.max_window_m:
         opened = _filter(_filter(surface, window, True), window, False)
-        rise = (params.step_m + params.slope * (window - previous) * resolution) / resolution
+        rise = (params.step_m + params.slope * (window - previous) * width) / resolution
         ground &= ~((surface != NONE) & (opened != NONE) & (surface - opened > rise))
         surface = np.where(opened != NONE, opened, surface)
         previous, window = window, window * 2
     height = np.where(ground, (floor.astype(np.float64) - TREE_MAX_VAL) * resolution, 0.0)
     known = ground.copy()
-    _fill(height, known, max(1, int(round(params.fill_m / resolution))))
+    _fill(height, known, max(1, int(round(params.fill_m / width))))
     height[~known] = np.nan
-    return Ground(height, x0, y0, resolution)
+    return Ground(height, x0, y0, resolution, column)
 
 
 def occupied_keys(leaves: Leaves, threshold_log: float) -> np.ndarray:

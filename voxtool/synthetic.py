@@ -224,3 +224,28 @@ def traffic(origins: np.ndarray, times: np.ndarray, ground_z: float) -> list[Box
         if not np.any(np.all((origins >= lo + shifts) & (origins <= hi + shifts), axis=1)):
             boxes.append(box)
     return boxes
+
+
+@dataclass(frozen=True)
+class PoseError:
+    """Error of a survey-grade GNSS/INS pose (standard deviations, independent per scan: the worst
+    case for scans a tenth of a second apart; an RTK-corrected INS specifies 2 cm horizontal and
+    0.03 degrees of roll and pitch, 0.1 degrees of heading, and twice as much vertical error is
+    usual)."""
+
+    horizontal_m: float = 0.03
+    vertical_m: float = 0.05
+    roll_pitch_deg: float = 0.05
+    heading_deg: float = 0.1
+
+    def apply(self, points: np.ndarray, origin: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """A scan (world points, sensor origin) as a pose with this error places it: turned about
+        the sensor by a random small rotation and shifted; returns (points float32, origin)."""
+        rx, ry, rz = np.radians(rng.normal(0.0, [self.roll_pitch_deg, self.roll_pitch_deg, self.heading_deg]))
+        cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+        turn = (np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+                @ np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
+                @ np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]]))
+        o = np.asarray(origin, dtype=np.float64)
+        shifted = o + rng.normal(0.0, [self.horizontal_m, self.horizontal_m, self.vertical_m])
+        return ((np.asarray(points, dtype=np.float64) - o) @ turn.T + shifted).astype(np.float32), shifted

@@ -361,7 +361,7 @@ def mcap_without_schema(tmp):
 
 CASES += [
     ("mcap chunk corrupted", mcap_case(mutate=flip_in_first_chunk), 3, "cannot read its poses: a CRC does not match"),
-    ("mcap channel without schema", mcap_without_schema, 3, "found 0 PointCloud2/LaserScan topics (none); choose one with --topic"),
+    ("mcap channel without schema", mcap_without_schema, 3, "no PointCloud2 or LaserScan topic to build from"),
 ]
 
 

@@ -46,6 +46,11 @@ from voxtool.cli.common import (
                    "points lie in void voxels.")
 @click.option("--max-range", default=-1.0, show_default=True, type=float,
               help="Rays are cut here and give no evidence beyond; < 0 = unlimited.")
+@click.option("--ground-band", default=0.3, show_default=True, type=float, metavar="METRES",
+              help="Points up to this far above the ground (found in all the scans' points together) are no "
+                   "evidence of a mover, and go only with a moving group above them (wheels, feet): under pose "
+                   "error of a few centimetres rays graze the road another scan saw, and the road would go. "
+                   "< 0: judge the ground as any other surface.")
 @click.option("--truth", type=click.Path(path_type=Path, exists=True), metavar="LABELS_DIR|TRUTH.npy",
               help="Score the result against ground truth: a folder of SemanticKITTI .label files, one per scan "
                    "file (000123.label for 000123.bin/.pcd; moving classes 252-259 are dynamic), or a .npy of "
@@ -57,7 +62,7 @@ from voxtool.cli.common import (
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
 def clean(source, sample, output, labels, dynamic, png, view, above_ground, resolution, sensor_noise, pose_error, group_share, max_range,
-          truth, origin, threads, as_json, progress, **kw):
+          ground_band, truth, origin, threads, as_json, progress, **kw):
     """Judge every point of SOURCE static or dynamic and write the static map (-o) and/or the labels.
 
     A point is dynamic when another scan saw through the space it occupies: its voxel is void
@@ -82,7 +87,7 @@ def clean(source, sample, output, labels, dynamic, png, view, above_ground, reso
 
         options = replace(options, truth=str(truth))
     params = CleanParams(resolution=resolution, sensor_noise=sensor_noise, pose_error=pose_error, max_range=max_range,
-                         group_share=group_share)
+                         group_share=group_share, ground_band=ground_band)
     from voxtool.ground import parse_above_ground
 
     band = parse_above_ground(above_ground)
@@ -104,6 +109,8 @@ def clean(source, sample, output, labels, dynamic, png, view, above_ground, reso
         ("points", f"{result['points_in']:,} judged ({result['points_dropped']:,} dropped on reading)"),
         ("kept (static)", f"{result['points_kept']:,}"),
         ("removed (dynamic)", f"{removed:,} ({share:.2%})"),
+        ("ground", f"{result['ground_points']:,} points within {ground_band} m of the ground: evidence of no mover"
+                   if ground_band >= 0 else "judged as any other surface (--ground-band < 0)"),
         ("maps", f"{result['void_map_bytes'] / 2**20:.1f} MiB at {resolution} m (crossed, void, holding points)"),
         ("time", f"{t['scans_total']:.3f} s for the scans on {result['threads']} threads (ray casting "
                  f"{t['raycast']:.3f} s, void map {t['void_update']:.3f} s), judging {t['classify']:.3f} s, "

@@ -89,11 +89,31 @@ def decode_scan(where: str, msgtype: str, msg) -> tuple[np.ndarray, np.ndarray |
     return decode_pointcloud2(where, msg), None, -1.0
 
 
+# message types of LiDAR drivers' raw packets or own point formats (Velodyne, Hesai, Ouster,
+# RoboSense, Livox, TIER IV's nebula): logs recorded before the driver's point cloud node
+PACKET_MARKERS = ("VelodyneScan", "PandarScan", "PacketMsg", "Packets", "Packet", "rslidarScan", "CustomMsg")
+
+
+def no_scan_topic(where: str, topics: dict[str, str]) -> str:
+    """The one line for a log with no PointCloud2 or LaserScan topic: what it holds instead."""
+    packets = sorted(t for t, s in topics.items() if any(m in s.rsplit("/", 1)[-1] for m in PACKET_MARKERS))
+    if packets:
+        named = ", ".join(f"{t} ({topics[t]})" for t in packets[:3])
+        return (f"{where}: no PointCloud2 or LaserScan topic: {named} holds the sensor driver's raw packets or its own "
+                "format, not points; turn them into PointCloud2 with that driver (play the log into its point cloud "
+                "node and record the output) and build from the recording")
+    listed = ", ".join(f"{t} ({s})" for t, s in sorted(topics.items())[:5]) or "none"
+    more = f" and {len(topics) - 5} more" if len(topics) > 5 else ""
+    return f"{where}: no PointCloud2 or LaserScan topic to build from (its topics: {listed}{more})"
+
+
 def scan_topic(where: str, topics: dict[str, str], topic: str | None) -> str:
     """The scan topic to read (`topics`: every topic's message type): the one given, which must
     be a PointCloud2 or LaserScan topic, or else the log's only one."""
     scans = sorted(t for t, s in topics.items() if s in SCAN_TYPES)
     if topic is None:
+        if not scans:
+            raise SourceError(no_scan_topic(where, topics))
         if len(scans) != 1:
             raise SourceError(f"{where}: found {len(scans)} PointCloud2/LaserScan topics ({', '.join(scans) or 'none'}); "
                               "choose one with --topic")

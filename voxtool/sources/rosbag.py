@@ -4,6 +4,7 @@ rosbags without ROS: PointCloud2 or LaserScan scans, posed by /tf (+ /tf_static)
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -120,6 +121,33 @@ def bag_root(path: Path) -> Path:
     return path
 
 
+BLANK_STORAGE = re.compile(r'^(\s*storage_identifier:\s*)(""|\'\')\s*$', re.M)
+BLANK_FORMAT = re.compile(r'^(\s*serialization_format:\s*)(""|\'\')\s*$', re.M)
+
+
+def ros2_blanks_filled(root: Path):
+    """A ROS 2 bag whose metadata.yaml leaves its storage or its topics' serialization blank (as
+    some rosbag2 releases wrote them; `ros2 bag` takes the storage from the files' extension and
+    CDR, ROS 2's only format): a temporary folder with the blanks filled in and links to the
+    bag's files, or None when nothing is blank."""
+    import tempfile
+
+    meta = root / "metadata.yaml"
+    if not (root.is_dir() and meta.is_file()):
+        return None
+    text = meta.read_text(errors="replace")
+    if not (BLANK_STORAGE.search(text) or BLANK_FORMAT.search(text)):
+        return None
+    storage = "mcap" if any(root.glob("*.mcap")) else "sqlite3"
+    folder = tempfile.TemporaryDirectory(prefix="voxtool-bag-")
+    for f in root.iterdir():
+        if f.name != "metadata.yaml":
+            (Path(folder.name) / f.name).symlink_to(f.resolve())
+    text = BLANK_FORMAT.sub(r"\g<1>cdr", BLANK_STORAGE.sub(rf"\g<1>{storage}", text))
+    (Path(folder.name) / "metadata.yaml").write_text(text)
+    return folder
+
+
 def _problem(err: Exception) -> str:
     text = str(err) or type(err).__name__
     return f"{type(err).__name__}: {text}" if text != type(err).__name__ else text
@@ -130,8 +158,9 @@ class _IndexedBag:
 
     lost = staticmethod(lambda: "")
 
-    def __init__(self, reader) -> None:
+    def __init__(self, reader, patched=None) -> None:
         self._reader = reader
+        self._patched = patched  # the folder of a ros2_blanks_filled() copy, removed on close
         self.topics = {name: info.msgtype or "" for name, info in reader.topics.items()}
 
     def count(self, topic: str) -> int | None:
@@ -149,6 +178,8 @@ class _IndexedBag:
     def close(self) -> None:
         if self._reader.stack is not None:
             self._reader.close()
+        if self._patched is not None:
+            self._patched.cleanup()
 
 
 class _LinearBag:
@@ -190,14 +221,17 @@ def open_bag(path: Path, recover: bool):
             if f.read(len(OLD_MAGIC)) == OLD_MAGIC:
                 return _LinearBag(LinearBag(root))  # raises the one line that says what to do
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    patched = None if ros1 else ros2_blanks_filled(root)
     try:
-        reader = AnyReader([root], default_typestore=store)
+        reader = AnyReader([Path(patched.name) if patched else root], default_typestore=store)
         reader.open()
-        return _IndexedBag(reader)
+        return _IndexedBag(reader, patched)
     except FileNotFoundError as err:
         raise SourceError(f"{path}: no such bag") from err
     except (OSError, *bag_errors()) as err:
         problem = _problem(err)
+    if patched is not None:
+        patched.cleanup()
     if not ros1:
         raise SourceError(f"{path}: cannot be read as a ROS bag ({problem})")
     if not recover:
