@@ -29,14 +29,17 @@ def place(ranks, codes, cells, background, out):
 
 
 @njit(cache=True, nogil=True)
-def scan(data, candidates, cells, background, out_ranks, out_codes):
-    """The cells (rank, code) of bytes `candidates` of `data` whose code is not `background`, in
-    rank order (padding cells past `cells` are not cells). Returns how many, or -1 when there are
-    more than `out_ranks` holds."""
+def scan(data, cells, background, out_ranks, out_codes):
+    """The cells (rank, code) of `data` (2-bit codes, four a byte) whose code is not
+    `background`, in rank order, skipping whole bytes of background cells (most of a delta;
+    padding cells past `cells` are not cells). Returns how many, or -1 when there are more than
+    `out_ranks` holds."""
+    fill = background * 0x55
     m = 0
-    for j in range(candidates.shape[0]):
-        i = candidates[j]
+    for i in range(data.shape[0]):
         b = data[i]
+        if b == fill:
+            continue
         for k in range(4):
             r = 4 * i + k
             if r >= cells:
