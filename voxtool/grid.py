@@ -36,17 +36,24 @@ class Grid2D:
                 "unknown_cells": int((self.cells == UNKNOWN).sum())}
 
 
-def parse_z_range(text: str | None) -> tuple[float, float] | None:
-    """--z-range MIN,MAX (metres) as a pair, checked; None for the whole height."""
+def parse_range(text: str | None, option: str, unit: str, rule: str,
+                lowest: float | None = None) -> tuple[float, float] | None:
+    """`option` MIN,MAX as a pair of finite numbers, MIN <= MAX (and `lowest` <= MIN where
+    given); None when the option is not given. `rule`: what the error line says they must be."""
     if text is None:
         return None
     try:
         lo, hi = (float(v) for v in text.split(","))
     except ValueError:
-        raise ParameterError(f"--z-range {text}: give two numbers MIN,MAX (metres)") from None
-    if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi):
-        raise ParameterError(f"--z-range {text}: MIN must be at most MAX, both finite")
+        raise ParameterError(f"{option} {text}: give two numbers MIN,MAX ({unit})") from None
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi and (lowest is None or lowest <= lo)):
+        raise ParameterError(f"{option} {text}: {rule}")
     return lo, hi
+
+
+def parse_z_range(text: str | None) -> tuple[float, float] | None:
+    """--z-range MIN,MAX (metres) as a pair, checked; None for the whole height."""
+    return parse_range(text, "--z-range", "metres", "MIN must be at most MAX, both finite")
 
 
 def project(leaves: Leaves, resolution: float, threshold_log: float,

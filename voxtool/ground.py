@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from voxtool.errors import ParameterError
-from voxtool.grid import FREE, OCCUPIED, UNKNOWN, Grid2D
+from voxtool.grid import FREE, OCCUPIED, UNKNOWN, Grid2D, parse_range
 from voxtool.keys import TREE_MAX_VAL, expand_leaves, morton_decode
 from voxtool.maps.base import Leaves
 
@@ -35,15 +35,8 @@ class GroundParams:
 
 def parse_above_ground(text: str | None) -> tuple[float, float] | None:
     """--above-ground MIN,MAX (metres above the ground) as a pair, checked."""
-    if text is None:
-        return None
-    try:
-        lo, hi = (float(v) for v in text.split(","))
-    except ValueError:
-        raise ParameterError(f"--above-ground {text}: give two numbers MIN,MAX (metres above the ground)") from None
-    if not (np.isfinite(lo) and np.isfinite(hi) and 0 <= lo <= hi):
-        raise ParameterError(f"--above-ground {text}: need 0 <= MIN <= MAX (metres above the ground)")
-    return lo, hi
+    return parse_range(text, "--above-ground", "metres above the ground",
+                       "need 0 <= MIN <= MAX (metres above the ground)", lowest=0.0)
 
 
 @njit(cache=True, nogil=True)
@@ -110,27 +103,34 @@ def _filter(a: np.ndarray, half: int, take_min: bool) -> np.ndarray:
 @njit(cache=True, nogil=True)
 def _fill(ground, known, rounds):
     """Spread known ground into unknown cells, ring by ring (each new cell the mean of its known
-    8-neighbours), for `rounds` rings: only the cells beside the last ring are visited."""
+    8-neighbours), for `rounds` rings: each ring is the unknown cells beside the last one (the
+    known cells, first), so only those are visited."""
     rows, cols = ground.shape
-    queued = known.copy()  # known, or already a candidate of the next ring
-    ring = np.empty(rows * cols, dtype=np.int64)
+    queued = known.copy()  # known, or in a ring already
+    ring = np.empty(rows * cols, dtype=np.int64)  # the last ring, then the next one after it
     m = 0
-    for r in range(rows):  # the first candidates: unknown cells beside known ones
+    for r in range(rows):
         for c in range(cols):
             if known[r, c]:
-                continue
+                ring[m] = r * cols + c
+                m += 1
+    values = np.empty(rows * cols)
+    for _ in range(rounds):
+        n_next = 0
+        for k in range(m):  # the next ring: cells beside the last one not yet queued
+            r, c = ring[k] // cols, ring[k] % cols
             for dr in range(-1, 2):
                 for dc in range(-1, 2):
                     rr, cc = r + dr, c + dc
-                    if not queued[r, c] and 0 <= rr < rows and 0 <= cc < cols and known[rr, cc]:
-                        queued[r, c] = True
-                        ring[m] = r * cols + c
-                        m += 1
-    values = np.empty(rows * cols)
-    for _ in range(rounds):
-        if m == 0:
+                    if 0 <= rr < rows and 0 <= cc < cols and not queued[rr, cc]:
+                        queued[rr, cc] = True
+                        ring[m + n_next] = rr * cols + cc
+                        n_next += 1
+        if n_next == 0:
             break
-        for k in range(m):  # each candidate from the cells known before this ring
+        ring[:n_next] = ring[m:m + n_next]
+        m = n_next
+        for k in range(m):  # each from the cells known before this ring
             r, c = ring[k] // cols, ring[k] % cols
             total = 0.0
             n = 0
@@ -145,19 +145,6 @@ def _fill(ground, known, rounds):
             r, c = ring[k] // cols, ring[k] % cols
             ground[r, c] = values[k]
             known[r, c] = True
-        m_next = 0
-        start = m  # the next ring goes after this one in `ring`, then moves down
-        for k in range(m):
-            r, c = ring[k] // cols, ring[k] % cols
-            for dr in range(-1, 2):
-                for dc in range(-1, 2):
-                    rr, cc = r + dr, c + dc
-                    if 0 <= rr < rows and 0 <= cc < cols and not queued[rr, cc]:
-                        queued[rr, cc] = True
-                        ring[start + m_next] = rr * cols + cc
-                        m_next += 1
-        ring[:m_next] = ring[start:start + m_next]
-        m = m_next
 
 
 @njit(cache=True, nogil=True)

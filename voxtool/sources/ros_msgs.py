@@ -91,7 +91,7 @@ def decode_scan(where: str, msgtype: str, msg) -> tuple[np.ndarray, np.ndarray |
 
 # message types of LiDAR drivers' raw packets or own point formats (Velodyne, Hesai, Ouster,
 # RoboSense, Livox, TIER IV's nebula): logs recorded before the driver's point cloud node
-PACKET_MARKERS = ("VelodyneScan", "PandarScan", "PacketMsg", "Packets", "Packet", "rslidarScan", "CustomMsg")
+PACKET_MARKERS = ("VelodyneScan", "PandarScan", "Packet", "rslidarScan", "CustomMsg")  # "Packet": PacketMsg, NebulaPackets
 
 
 def no_scan_topic(where: str, topics: dict[str, str]) -> str:
