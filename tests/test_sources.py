@@ -168,6 +168,29 @@ def test_nan_points_are_dropped_and_counted(tmp_path, scans):
     assert r["points"] == len(pts) and r["points_dropped"] == 6 and r["points_dropped_nonfinite"] == 6
 
 
+def test_a_signalling_nan_in_a_binary_pcd_is_a_nan_without_a_warning():
+    """A float32 signalling NaN widened beside a float64 field raises the FPU's invalid flag: it
+    reads as a NaN point (dropped and counted later), with no RuntimeWarning on the way."""
+    import warnings
+
+    from voxtool.sources.pcd import parse_pcd
+
+    for kind in ("binary", "binary_compressed"):
+        head = (b"VERSION 0.7\nFIELDS x y z\nSIZE 8 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
+                b"POINTS 2\nDATA " + kind.encode() + b"\n")
+        x, y, z = np.array([1.0, 2.0]), np.array([0x7FA00000, 0x40400000], np.uint32).view(np.float32), np.ones(2, np.float32)
+        if kind == "binary":
+            body = np.rec.fromarrays([x, y, z], names="x,y,z").tobytes()
+        else:  # column-major, stored uncompressed: an LZF stream of literal runs
+            raw = x.tobytes() + y.tobytes() + z.tobytes()
+            lzf = b"".join(bytes([len(raw[k:k + 32]) - 1]) + raw[k:k + 32] for k in range(0, len(raw), 32))
+            body = np.array([len(lzf), len(raw)], "<u4").tobytes() + lzf
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            xyz = parse_pcd(head + body).xyz
+        assert np.isnan(xyz[0, 1]) and np.array_equal(xyz[1], [2.0, 3.0, 1.0])
+
+
 def test_min_range_drops_near_points(tmp_path, scans):
     pts, o, q = scans[0]
     write_pcd(tmp_path / "0.pcd", pts, (*o, *q))

@@ -119,18 +119,21 @@ def parse_pcd(blob: bytes, path: str | Path = "pcd") -> PcdCloud:
     # doubles stay doubles: world-frame clouds (UTM) lose centimetres in float32 before an
     # --origin is subtracted; the points become float32 only after (sources.make_scan)
     out = np.float64 if any(np.dtype(dtypes[i][0]).itemsize == 8 for i in axis_idx) else np.float32
-    if kind == "binary":
-        need = npts * record.itemsize
-        if len(body) < need:
-            raise SourceError(f"{path}: PCD binary body has {len(body)} bytes, header declares {need}")
-        rec = np.frombuffer(body, dtype=record, count=npts)
-        xyz = np.stack([rec[f"f{i}"][:, 0] for i in axis_idx], axis=1).astype(out)
-    elif kind == "binary_compressed":
-        xyz = _binary_compressed(path, body, npts, dtypes, axis_idx).astype(out, copy=False)
-    elif kind == "ascii":
-        xyz = _ascii(path, bytes(body), npts, dtypes, axis_idx).astype(out, copy=False)
-    else:
+    if kind not in ("binary", "binary_compressed", "ascii"):
         raise SourceError(f"{path}: PCD DATA '{kind}' is not ascii, binary or binary_compressed")
+    # a signalling NaN in the bytes raises the FPU's invalid flag when widened (a RuntimeWarning
+    # from numpy); it is a NaN either way, and non-finite points are dropped and counted later
+    with np.errstate(invalid="ignore"):
+        if kind == "binary":
+            need = npts * record.itemsize
+            if len(body) < need:
+                raise SourceError(f"{path}: PCD binary body has {len(body)} bytes, header declares {need}")
+            rec = np.frombuffer(body, dtype=record, count=npts)
+            xyz = np.stack([rec[f"f{i}"][:, 0] for i in axis_idx], axis=1).astype(out)
+        elif kind == "binary_compressed":
+            xyz = _binary_compressed(path, body, npts, dtypes, axis_idx).astype(out, copy=False)
+        else:
+            xyz = _ascii(path, bytes(body), npts, dtypes, axis_idx).astype(out, copy=False)
     return PcdCloud(xyz, viewpoint, has_vp, kind)
 
 
