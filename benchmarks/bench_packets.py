@@ -7,7 +7,7 @@
     python benchmarks/bench_packets.py split                      # one stream as two robots: fusion, resend
     python benchmarks/bench_packets.py codecs [--runs 2]          # whole `encode`, zstd vs cm: first run and warm
     python benchmarks/bench_packets.py onboard                    # per packet at the paper's setting, vs its Table IV
-    python benchmarks/bench_packets.py disk [--log-mb 120] [--base REV]  # stats / merge / decode against building
+    python benchmarks/bench_packets.py disk [--log-mb 120] [--base REV] [--repeats 5]  # stats / merge / decode vs build
 
 Prints tables and writes bench-results/packets_<mode>.json.
 """
@@ -427,13 +427,14 @@ def long_log(packets: list, path: Path, megabytes: float) -> float:
     return path.stat().st_size / 1e6
 
 
-def disk(data: Path, log_mb: float, base: str | None = None) -> dict:
+def disk(data: Path, log_mb: float, base: str | None = None, repeats: int = 5) -> dict:
     """Whole commands on kaist03 at unlimited range (21 scans, hilbert/zstd): encode, stats,
-    merge and decode of its log against building the map from the scans; then `stats` of a long
+    merge and decode of its log against building the map from the scans, and merge of two robots'
+    logs (the first 11 scans and the other 10, encoded apart); then `stats` of a long
     log of `log_mb` MB or more (kaist03's packets over and over), in MB of log a second beyond
     start-up (the same command on a log of one packet). Peak memory of each command's own
-    process. `base`: the same commands of another revision too (a git worktree; each command run
-    once untimed first, so that its kernels are compiled)."""
+    process; medians of `repeats` runs. `base`: the same commands of another revision too (a git
+    worktree; each command run once untimed first, so that its kernels are compiled)."""
     from voxtool.codec.log import read_log
 
     sys.path.insert(0, str(Path(__file__).parent))
@@ -451,18 +452,42 @@ def disk(data: Path, log_mb: float, base: str | None = None) -> dict:
             check_imports(tree, Path(tempfile.gettempdir()))
             trees.insert(0, (base, tree))
         log = tmp / "r1.mcap"
+        halves = [tmp / "first", tmp / "second"]  # two robots: scans 0-10 and 11-20, a log each
+        files = sorted(scans.glob("*.pcd"))
+        for half, part in zip(halves, (files[:11], files[11:])):
+            half.mkdir()
+            for f in part:
+                (half / f.name).symlink_to(f)
+        runs: dict[tuple[str, str], list] = {}
+        commands_of = {}
         for name, tree in trees:
-            commands = (("build", ["build", scans, "-o", tmp / "b.vxm"]),
+            commands = commands_of[name] = (("build", ["build", scans, "-o", tmp / "b.vxm"]),
                         ("encode", ["encode", scans, "-o", log, "--robot", "r1"]),
                         ("stats", ["stats", log]), ("merge", ["merge", log, "-o", tmp / "m.vxm"]),
-                        ("decode", ["decode", log, "-o", tmp / "d.vxm"]))
+                        ("decode", ["decode", log, "-o", tmp / "d.vxm"]),
+                        ("encode 2 robots", ["encode", *halves, "-o", f"{tmp}/"]),
+                        ("merge 2 logs", ["merge", tmp / "first.mcap", tmp / "second.mcap", "-o", tmp / "m2.vxm"]))
             for command, args in commands:
                 if tree is not None:
                     _run(args, tree)  # compiles the revision's kernels
-                seconds, peak = _run(args, tree)
-                rows.append({"revision": name, "command": command, "seconds": round(seconds, 3),
-                             "peak_rss_mib": round(peak, 1),
-                             "log_mb": round(log.stat().st_size / 1e6, 2) if log.exists() else ""})
+                runs[(name, command)] = [_run(args, tree)]
+        # the rest of the `repeats` runs alternate between commands and revisions, so that the
+        # machine's drift (20-30 % between minutes) falls on all of them alike
+        for _ in range(repeats - 1):
+            for name, tree in trees:
+                for command, args in commands_of[name]:
+                    runs[(name, command)].append(_run(args, tree))
+        for (name, command), times in runs.items():
+            rows.append({"revision": name, "command": command,
+                         "seconds": round(float(np.median([t for t, _ in times])), 3),
+                         "fastest_s": round(min(t for t, _ in times), 3), "runs": len(times),
+                         "peak_rss_mib": round(float(np.median([m for _, m in times])), 1),
+                         "log_mb": round(log.stat().st_size / 1e6, 2)})
+        for name, _ in trees:
+            build = runs[(name, "build")]
+            for command in ("merge", "decode", "merge 2 logs"):  # item 3: against building from the scans
+                pairs = [t / b for (t, _), (b, _) in zip(runs[(name, command)], build)]
+                print(f"{name}: {command} / build, median of {len(pairs)} paired runs: {np.median(pairs):.3f}")
         _, messages = read_log(log)
         packets = list(messages)
         size = long_log(packets, tmp / "long.mcap", log_mb)
@@ -477,9 +502,10 @@ def disk(data: Path, log_mb: float, base: str | None = None) -> dict:
                              "seconds": round(seconds, 3), "start_up_s": round(start, 3), "peak_rss_mib": round(peak, 1),
                              "log_mb": round(size, 1),
                              "MB_per_s_beyond_start_up": round(size / max(seconds - start, 1e-9), 1)})
-    print(f"{'revision':<10} {'command':<30} {'seconds':>8} {'log MB':>8} {'peak MiB':>9}")
+    print(f"{'revision':<10} {'command':<30} {'seconds':>8} {'fastest':>8} {'log MB':>8} {'peak MiB':>9}")
     for r in rows:
-        print(f"{r['revision']:<10} {r['command']:<30} {r['seconds']:>8.2f} {r['log_mb']:>8} {r['peak_rss_mib']:>9}"
+        print(f"{r['revision']:<10} {r['command']:<30} {r['seconds']:>8.2f} {r.get('fastest_s', ''):>8} {r['log_mb']:>8} "
+              f"{r['peak_rss_mib']:>9}"
               + (f"   {r['MB_per_s_beyond_start_up']} MB/s beyond start-up ({r['start_up_s']} s)"
                  if "MB_per_s_beyond_start_up" in r else ""))
     return {"rows": rows}
@@ -491,6 +517,7 @@ def main() -> None:
                                      "onboard", "disk"])
     ap.add_argument("--log-mb", type=float, default=120.0, help="disk: the long log's size for `stats`")
     ap.add_argument("--base", default=None, help="disk: also run the commands of this git revision (before/after)")
+    ap.add_argument("--repeats", type=int, default=5, help="disk: runs of each command (the median is reported)")
     ap.add_argument("--samples", type=int, default=10)
     ap.add_argument("--runs", type=int, default=2, help="codecs: warm runs of each codec (the best is kept)")
     ap.add_argument("--pcd", action="store_true", help="streams: the PCD directories instead of the MCAP files")
@@ -500,7 +527,7 @@ def main() -> None:
               "intervals": lambda: intervals(Path(args.data)), "throughput": throughput,
               "split": lambda: split(Path(args.data)), "lossless": lambda: lossless(Path(args.data)),
               "codecs": lambda: codecs(Path(args.data), args.runs), "onboard": lambda: onboard(Path(args.data)),
-              "disk": lambda: disk(Path(args.data), args.log_mb, args.base)}[args.mode]()
+              "disk": lambda: disk(Path(args.data), args.log_mb, args.base, args.repeats)}[args.mode]()
     OUT.mkdir(exist_ok=True)
     suffix = "_pcd" if args.pcd and args.mode == "streams" else ""
     (OUT / f"packets_{args.mode}{suffix}.json").write_text(json.dumps(result, indent=2, default=str))

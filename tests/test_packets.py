@@ -183,6 +183,21 @@ def test_two_robots_fuse_by_latest_stamp_and_extrinsics_move_keys(tmp_path):
     assert (14, 10, 10) in keys and (12, 10, 10) in keys
 
 
+def test_a_voxel_last_seen_unknown_leaves_the_fused_map():
+    """Fusion drops (in place) the voxels whose latest state is unknown, keeping the others in
+    Morton order; a voxel unknown and then seen again stays."""
+    def mk(keys, states, stamp):
+        return decode_packet(encode_packet("a", stamp, stamp, "hilbert", "none", 0.5, np.array(keys),
+                                           np.array(states, np.uint8)))
+
+    keys = [[10 + i, 10, 10] for i in range(6)]
+    packets = [mk(keys, [1, 0, 1, 0, 1, 0], 0), mk(keys[:3], [2, 2, 2], 1), mk(keys[2:3], [0], 2)]
+    fused = fuse([], packets=iter(packets))
+    got = dict(zip(map(tuple, morton_decode(fused.codes).tolist()), fused.states.tolist()))
+    assert got == {(12, 10, 10): 0, (13, 10, 10): 0, (14, 10, 10): 1, (15, 10, 10): 0}
+    assert np.all(np.diff(fused.codes) > 0)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_resend_under_loss_reorder_and_duplicates_equals_lossless(tmp_path, seed):
     blobs = {}

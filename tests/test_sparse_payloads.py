@@ -60,13 +60,15 @@ def test_a_delta_payload_is_the_dense_grid_packed_cell_by_cell(dims, seed, share
 
 
 @settings(max_examples=80)
-@given(st.lists(st.lists(st.tuples(st.integers(0, 300), st.integers(0, 2)), max_size=60), max_size=40))
-def test_the_running_latest_state_equals_a_sort_of_every_change(packets):
+@given(st.lists(st.lists(st.tuples(st.integers(0, 300), st.integers(0, 2)), max_size=60), max_size=40),
+       st.booleans())
+def test_the_running_latest_state_equals_a_sort_of_every_change(packets, background):
     """Packets fused in order: each voxel's state is its last change (the lexsort of all changes
-    by code, then by packet, that fusion used before), whatever the batch sizes."""
+    by code, then by packet, that fusion used before), whatever the batch sizes, merged on the
+    caller's thread or on a thread of their own while packets are still added."""
     from voxtool.codec.fusion import LatestStates
 
-    latest = LatestStates()
+    latest = LatestStates(background=background)
     latest.MIN_BATCH = 7  # small batches: merges of the running set happen many times
     all_codes, all_states, ranks = [], [], []
     for k, changes in enumerate(packets):
@@ -117,3 +119,76 @@ def test_pruning_the_sorted_voxels_equals_the_octrees_pruned_leaves(seed, n, lev
     assert np.array_equal(got_codes, reference.codes) and np.array_equal(got_depths, reference.depths)
     assert np.array_equal(got_values, reference.values)
     assert levels == 0 or (reference.depths < 16).any()  # the blocks did merge: pruning was exercised
+
+
+@settings(max_examples=150)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 70), st.floats(0.0, 1.0), st.integers(0, 3), st.integers(-2, 2))
+def test_the_scan_finds_the_cells_a_cell_by_cell_read_finds(seed, cells, share, background, room):
+    """scan (four cells of a changed byte written at once) against unpack_2bit and a compare, with
+    output room around the true count: exactly enough finds them all, one short is refused (-1),
+    whatever padding the last byte holds."""
+    from voxtool.codec.packet import unpack_2bit
+    from voxtool.kernels.cells2bit import scan
+
+    rng = np.random.default_rng(seed)
+    codes = np.where(rng.random(cells) < share, rng.integers(0, 4, cells), background).astype(np.uint8)
+    data = np.frombuffer(pack_2bit(codes), np.uint8)
+    data = data.copy()
+    if cells % 4:  # padding cells of another code than the background must not count either
+        data[-1] |= np.uint8(0xFF << (2 * (cells % 4)) & 0xFF)
+    want = np.flatnonzero(unpack_2bit(data.tobytes(), cells) != background)
+    capacity = max(0, want.shape[0] + room)
+    ranks, found = np.empty(capacity + 3, np.int64), np.empty(capacity + 3, np.uint8)
+    n = scan(data, cells, background, ranks, found)
+    if capacity < want.shape[0]:
+        assert n == -1
+    else:
+        assert n == want.shape[0]
+        assert np.array_equal(ranks[:n], want) and np.array_equal(found[:n], codes[want])
+
+
+def test_a_header_count_that_differs_from_the_payload_is_refused():
+    """A delta whose header declares one change more or fewer than its payload holds (CRC made
+    anew, so only the count is wrong) is refused with the count named."""
+    import zlib
+
+    import pytest
+
+    from voxtool.codec.packet import HEADER
+    from voxtool.errors import FormatError
+
+    rel = np.array([[0, 0, 0], [3, 1, 2], [4, 4, 4], [1, 2, 3]])
+    lo = np.array([100, 100, 100])
+    for scheme in ("hilbert", "nested"):
+        blob = encode_packet("r", 0, 0, scheme, "none", 0.1, rel + lo, np.array([0, 1, 2, 1], np.uint8),
+                             box=(lo, np.array([5, 5, 5])))
+        for count, message in ((3, "more changed cells than the header's 3"), (5, "4 changed cells, header declares 5")):
+            fields = list(HEADER.unpack_from(blob, 0))
+            fields[18], fields[21] = count, 0
+            head = HEADER.pack(*fields)[:-4]
+            forged = head + zlib.crc32(blob[HEADER.size:], zlib.crc32(head)).to_bytes(4, "little") + blob[HEADER.size:]
+            with pytest.raises(FormatError, match=message):
+                decode_packet(forged)
+
+
+def test_a_fusion_that_fails_midway_leaves_no_merging_thread():
+    """Packets of two resolutions: fusion refuses the second after merging has started on its own
+    thread (batches of 7 changes), and that thread is gone when the error reaches the caller."""
+    import threading
+
+    import pytest
+
+    from voxtool.codec.fusion import LatestStates, fuse
+    from voxtool.errors import FormatError
+
+    lo = np.array([100, 100, 100])
+    rel = np.stack(np.meshgrid(np.arange(4), np.arange(4), np.arange(4), indexing="ij"), -1).reshape(-1, 3)
+    states = np.zeros(rel.shape[0], np.uint8)
+    blobs = [encode_packet("r", k, k, "hilbert", "zstd", 0.1 if k < 3 else 0.2, rel + lo, states) for k in range(4)]
+    LatestStates.MIN_BATCH, before = 7, LatestStates.MIN_BATCH
+    try:
+        with pytest.raises(FormatError, match="resolution 0.2 m"):
+            fuse([], packets=[decode_packet(b) for b in blobs])
+    finally:
+        LatestStates.MIN_BATCH = before
+    assert not [t for t in threading.enumerate() if t.name.startswith("voxtool-fusion")]

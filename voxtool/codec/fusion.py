@@ -71,17 +71,27 @@ class LatestStates:
     """Each voxel's latest state over packets added in order, kept as a sorted set and merged
     with batches of packets (a batch at least half the set: amortised linear). The set lives in
     buffers with room to grow, merged into in place, so memory is the set, its spare room and
-    a batch, not every change of every packet."""
+    a batch, not every change of every packet.
+
+    `background`: batches are sorted and merged on a thread of their own, one at a time and in
+    order, while the caller goes on adding (and decoding) packets; memory is then at most two
+    batches besides the set, and only the last batch's merge is left when the packets end."""
 
     MIN_BATCH = 1 << 20
 
-    def __init__(self) -> None:
+    def __init__(self, background: bool = False) -> None:
         self._set_codes = np.zeros(0, np.int64)
         self._set_states = np.zeros(0, np.uint8)
         self.size = 0
         self._codes: list[np.ndarray] = []
         self._states: list[np.ndarray] = []
         self._pending = 0
+        self._merger = None
+        if background:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._merger = ThreadPoolExecutor(max_workers=1, thread_name_prefix="voxtool-fusion")
+        self._merging = None  # the batch being merged on that thread
 
     def add(self, codes: np.ndarray, states: np.ndarray) -> None:
         self._codes.append(codes)
@@ -91,13 +101,29 @@ class LatestStates:
             self._merge()
 
     def _merge(self) -> None:
-        from voxtool.kernels.sort import latest_per_code, merge_latest_into
-
         if not self._codes:
             return
-        codes, states = np.concatenate(self._codes), np.concatenate(self._states)
-        self._codes, self._states, self._pending = [], [], 0  # the packets' arrays go as soon as they are joined
-        codes, states = latest_per_code(codes, states)
+        batch = self._codes, self._states
+        self._codes, self._states, self._pending = [], [], 0  # the packets' arrays go once the batch is joined
+        if self._merger is None:
+            self._merge_batch(*batch)
+            return
+        self._wait()  # one batch in flight: batches merge in the order they came
+        self._merging = self._merger.submit(self._merge_batch, *batch)
+
+    def _wait(self) -> None:
+        if self._merging is not None:
+            merging, self._merging = self._merging, None
+            merging.result()  # raises what the merge raised
+
+    def _merge_batch(self, codes: list, states: list) -> None:
+        from voxtool.kernels.sort import latest_per_code, merge_latest_into
+
+        joined = np.concatenate(codes), np.concatenate(states)
+        codes.clear()  # the packets' arrays go now: the lists are still held by whoever called
+        states.clear()
+        codes, states = latest_per_code(*joined)
+        del joined
         need = self.size + codes.shape[0]
         if need > self._set_codes.shape[0]:  # more room: an eighth more than is needed (growth copies the set once)
             room = need + need // 8
@@ -109,8 +135,18 @@ class LatestStates:
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
         """The set (views of its buffers)."""
-        self._merge()
+        try:
+            self._merge()
+            self._wait()
+        finally:
+            self.close()
         return self._set_codes[:self.size], self._set_states[:self.size]
+
+    def close(self) -> None:
+        """Stop the merging thread (after the batch it is merging); a no-op once stopped."""
+        if self._merger is not None:
+            self._merger.shutdown(wait=True)
+            self._merger = None
 
 
 def _log_packets(path: Path, extrinsics: dict | None = None):
@@ -146,6 +182,7 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
     a bar over the packets on stderr (None: when stderr is a terminal). `on_packet(packet,
     codes)`: called for every packet fused, in fusion order, with its voxels' Morton codes in the
     fused frame (the replay of `--view`)."""
+    from voxtool.kernels.sort import drop_state
     from voxtool.progress import track
 
     extrinsics = extrinsics or {}
@@ -162,50 +199,55 @@ def fuse(paths: list[Path], extrinsics: dict[str, Extrinsic] | None = None, pack
     else:
         packets = ((None, (p, _fused_codes(p, extrinsics))) for p in packets)
     packets = track(packets, total, "fuse", progress, "packet")
-    latest = LatestStates()
+    latest = LatestStates(background=True)
     robots: dict[str, dict] = {}
     resolution = first_from = origin = None
     rank = 0
     seen: dict[str, dict] = {}  # robot -> (seq, kind) -> the log it came from
-    for path, (p, codes) in packets:
-        where = f"{path}: " if path is not None else ""
-        if resolution is None:
-            resolution, first_from = p.resolution, path
-        elif p.resolution != resolution:
-            raise FormatError(f"{where}packet {p.seq} of robot '{p.robot}' has resolution {p.resolution} m, but "
-                              f"{first_from or 'the first packet'} has {resolution} m: fuse maps of one resolution")
-        if origin is None:
-            origin = tuple(p.map_origin)
-        elif tuple(p.map_origin) != origin:
-            raise FormatError(f"{where}packet {p.seq} of robot '{p.robot}' has map origin {list(p.map_origin)}, but "
-                              f"{first_from or 'the first packet'} has {list(origin)}: encode every robot's scans about "
-                              "one --origin X,Y,Z")
-        info = robots.setdefault(p.robot, {"packets": 0, "first_stamp_ns": p.stamp_ns, "seqs": set()})
-        seen_ids = seen.setdefault(p.robot, {})
-        info["packets"] += 1
-        info["last_stamp_ns"] = p.stamp_ns
-        if (p.seq, p.kind) in seen_ids:
-            other = seen_ids[(p.seq, p.kind)]
-            if other != path:
-                raise ParameterError(f"{path}: packet {p.seq} of robot '{p.robot}' is also in {other}: the same robot's "
-                                     "log given twice, or two robots' logs encoded under one name: encode each with "
-                                     "its own --robot (the default is the log's file name)")
-            continue  # duplicate delivery within one log
-        seen_ids[(p.seq, p.kind)] = path
-        if p.kind == 0:
-            info["seqs"].add(p.seq)
-        if on_packet is not None:
-            on_packet(p, codes)
-        latest.add(codes, p.states)
-        rank += 1
+    try:
+        for path, (p, codes) in packets:
+            where = f"{path}: " if path is not None else ""
+            if resolution is None:
+                resolution, first_from = p.resolution, path
+            elif p.resolution != resolution:
+                raise FormatError(f"{where}packet {p.seq} of robot '{p.robot}' has resolution {p.resolution} m, but "
+                                  f"{first_from or 'the first packet'} has {resolution} m: fuse maps of one resolution")
+            if origin is None:
+                origin = tuple(p.map_origin)
+            elif tuple(p.map_origin) != origin:
+                raise FormatError(f"{where}packet {p.seq} of robot '{p.robot}' has map origin {list(p.map_origin)}, but "
+                                  f"{first_from or 'the first packet'} has {list(origin)}: encode every robot's scans about "
+                                  "one --origin X,Y,Z")
+            info = robots.setdefault(p.robot, {"packets": 0, "first_stamp_ns": p.stamp_ns, "seqs": set()})
+            seen_ids = seen.setdefault(p.robot, {})
+            info["packets"] += 1
+            info["last_stamp_ns"] = p.stamp_ns
+            if (p.seq, p.kind) in seen_ids:
+                other = seen_ids[(p.seq, p.kind)]
+                if other != path:
+                    raise ParameterError(f"{path}: packet {p.seq} of robot '{p.robot}' is also in {other}: the same robot's "
+                                         "log given twice, or two robots' logs encoded under one name: encode each with "
+                                         "its own --robot (the default is the log's file name)")
+                continue  # duplicate delivery within one log
+            seen_ids[(p.seq, p.kind)] = path
+            if p.kind == 0:
+                info["seqs"].add(p.seq)
+            if on_packet is not None:
+                on_packet(p, codes)
+            latest.add(codes, p.states)
+            rank += 1
+    except BaseException:
+        latest.close()  # its thread ends; what it merged is dropped with it
+        raise
+    codes, states = latest.result()
     _warn_clocks_apart(robots)
     for info in robots.values():
         seqs = sorted(info.pop("seqs"))
         missing = sorted(set(range(seqs[0], seqs[-1] + 1)) - set(seqs)) if seqs else []
         info["gaps"] = missing
-    codes, states = latest.result()
-    known = states != UNKNOWN  # a voxel last seen unknown is not in the fused map; copies at their size
-    return FusionResult(codes[known], states[known], resolution or 0.0, rank, robots,
+    # a voxel last seen unknown is not in the fused map: dropped in place (a copy of the set was this command's peak)
+    known = drop_state(codes, states, codes.shape[0], UNKNOWN)
+    return FusionResult(codes[:known], states[:known], resolution or 0.0, rank, robots,
                         origin=origin or (0.0, 0.0, 0.0))
 
 
@@ -242,6 +284,9 @@ def _fused_codes(p: Packet, extrinsics: dict) -> np.ndarray:
     return codes
 
 
+SAVE_PIECE = 1 << 20  # leaves a snapshot piece holds
+
+
 def save_state_map(path, result: FusionResult, info: dict) -> None:
     """Write the fused map as an octree snapshot. It consumes the result's voxels: they are
     pruned in place into the snapshot's leaves (the fused set is the largest thing in memory;
@@ -254,16 +299,26 @@ def save_state_map(path, result: FusionResult, info: dict) -> None:
 
     sensor = SensorModel()
     m = OctreeMap(MapParams(resolution=result.resolution or 0.1), sensor)  # its parameters; the leaves are below
+    from voxtool.heap import give_back_freed_memory
+
     codes, states = np.ascontiguousarray(result.codes), np.ascontiguousarray(result.states)
     result.codes = result.states = None
+    give_back_freed_memory()  # fusion's freed batches, before the save adds its own memory
     depths = np.empty(codes.shape[0], np.uint8)
     # the octree's pruned leaves, straight from the sorted voxels (pruned by state: each state is
     # one log-odds value) and no tree built to be saved; the log-odds made for the leaves alone
     top = prune_into(codes, states, codes, depths, states)
     codes, depths, states = codes[:top], depths[:top], states[:top]
-    values = np.where(states == OCCUPIED, np.float32(sensor.clamp_max_log), np.float32(sensor.clamp_min_log))
-    table = ChunkedArrays(("leaf_codes", "leaf_depths", "leaf_values"), ("int64", "uint8", "float32"),
-                          codes.shape[0], lambda: iter([(codes, depths, values.astype(np.float32, copy=False))]))
+    occupied, free = np.float32(sensor.clamp_max_log), np.float32(sensor.clamp_min_log)
+
+    def pieces():
+        # the snapshot's bytes are those of the whole table; written a piece at a time, its
+        # encoding holds a piece's planes and log-odds, not the table's (100 MB on kaist03)
+        for at in range(0, top, SAVE_PIECE):
+            end = min(at + SAVE_PIECE, top)
+            yield codes[at:end], depths[at:end], np.where(states[at:end] == OCCUPIED, occupied, free)
+
+    table = ChunkedArrays(("leaf_codes", "leaf_depths", "leaf_values"), ("int64", "uint8", "float32"), top, pieces)
     save_map(path, m, {**info, "origin": [float(v) for v in result.origin]}, dict.fromkeys(table.names, table))
 
 

@@ -288,17 +288,21 @@ def _ranks(codes, dx, dy, dz, bits, octant, nxt, out):
 
 
 @njit(cache=True, nogil=True)
-def _cells(ranks, dx, dy, dz, bits, octant, nxt, out):
-    """out[i] = (x, y, z) of the cell at rank ranks[i] on the box's curve (ranks sorted, unique,
-    below the box's cell count)."""
+def _cells(ranks, dx, dy, dz, bits, octant, nxt, lo, out):
+    """out[i] = lo + (x, y, z) of the cell at rank ranks[i] on the box's curve (ranks sorted,
+    unique, below the box's cell count); `out` may be of any integer type that holds them."""
     n = ranks.shape[0]
     if bits == 0:
         for i in range(n):
-            out[i, 0] = 0
-            out[i, 1] = 0
-            out[i, 2] = 0
+            out[i, 0] = lo[0]
+            out[i, 1] = lo[1]
+            out[i, 2] = lo[2]
         return
     stack = _open_stack(bits)
+    # the path to the last cell read inside a whole cube: the state and corner before each of
+    # its digits. Sorted ranks close together share their leading digits, so the next cell's
+    # path is taken again from the first digit that differs, not from the cube's top.
+    path = np.zeros((bits + 1, 4), dtype=np.int64)
     rank = 0
     p = 0
     lvl = 0
@@ -316,23 +320,35 @@ def _cells(ranks, dx, dy, dz, bits, octant, nxt, out):
         child = nxt[stack[lvl, STATE], h]
         if volume == half * half * half:
             # a whole cube inside the box: its cells follow the curve without gaps, so each wanted
-            # rank in it is read digit by digit (a table step a level), no sibling visited
+            # rank in it is read digit by digit (3 bits of the rank, a table step each), no
+            # sibling visited
+            digits = 0
+            while (1 << digits) < half:
+                digits += 1
+            path[0, 0], path[0, 1], path[0, 2], path[0, 3] = child, x, y, z
+            before = -1
             while p < n and ranks[p] < rank + volume:
                 r = ranks[p] - rank
-                state, cx, cy, cz, size = child, x, y, z, half
-                while size > 1:
-                    size >>= 1
-                    cells = size * size * size
-                    digit = r // cells
-                    r -= digit * cells
+                first = 0  # the first digit to take: the highest one that differs from the last cell's
+                if before >= 0:
+                    d = (r ^ before) >> 3
+                    first = digits - 1
+                    while d != 0:
+                        d >>= 3
+                        first -= 1
+                for j in range(first, digits):
+                    shift = digits - 1 - j
+                    digit = (r >> (3 * shift)) & 7
+                    state = path[j, 0]
                     oo = octant[state, digit]
-                    cx += (oo & 1) * size
-                    cy += ((oo >> 1) & 1) * size
-                    cz += ((oo >> 2) & 1) * size
-                    state = nxt[state, digit]
-                out[p, 0] = cx
-                out[p, 1] = cy
-                out[p, 2] = cz
+                    path[j + 1, 0] = nxt[state, digit]
+                    path[j + 1, 1] = path[j, 1] + ((oo & 1) << shift)
+                    path[j + 1, 2] = path[j, 2] + (((oo >> 1) & 1) << shift)
+                    path[j + 1, 3] = path[j, 3] + (((oo >> 2) & 1) << shift)
+                out[p, 0] = lo[0] + path[digits, 1]
+                out[p, 1] = lo[1] + path[digits, 2]
+                out[p, 2] = lo[2] + path[digits, 3]
+                before = r
                 p += 1
             rank += volume
             continue
@@ -353,10 +369,12 @@ def ranks_of(rel: np.ndarray, dims) -> np.ndarray:
     return ranks[back.ravel()]
 
 
-def cells_at(ranks: np.ndarray, dims) -> np.ndarray:
-    """(N, 3) int64 coordinates of the cells at these curve ranks (sorted ascending, unique)."""
+def cells_at(ranks: np.ndarray, dims, lo=(0, 0, 0), dtype=np.int64) -> np.ndarray:
+    """(N, 3) coordinates of the cells at these curve ranks (sorted ascending, unique), plus `lo`:
+    a packet's keys (uint16) where lo is its box's first key."""
     dx, dy, dz = (int(d) for d in dims)
-    out = np.empty((ranks.shape[0], 3), dtype=np.int64)
+    out = np.empty((ranks.shape[0], 3), dtype=dtype)
     octant, nxt = state_tables()
-    _cells(np.asarray(ranks, dtype=np.int64), dx, dy, dz, bits_for((dx, dy, dz)), octant, nxt, out)
+    _cells(np.asarray(ranks, dtype=np.int64), dx, dy, dz, bits_for((dx, dy, dz)), octant, nxt,
+           np.asarray(lo, dtype=np.int64), out)
     return out

@@ -132,32 +132,36 @@ def _ranks(scheme: str, rel: np.ndarray, dims) -> np.ndarray:
     return rel[:, 0] + int(dims[0]) * (rel[:, 1] + int(dims[1]) * rel[:, 2])
 
 
-def _changed_cells(raw: bytes, scheme: str, dims, count: int, where: str,
+def _changed_cells(raw: bytes, scheme: str, dims, lo, count: int, where: str,
                    ordered: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """(nested indices, codes) of a delta payload's cells that are not 'unchanged', in nested
-    order, found by the bytes that differ from four unchanged cells; more or fewer than the
-    header's `count` is an error."""
-    from voxtool.kernels.cells2bit import scan
+    """(uint16 keys, codes) of a delta payload's cells that are not 'unchanged', in nested order
+    (x fastest) or, where not `ordered`, as found; found by the bytes that differ from four
+    unchanged cells; more or fewer than the header's `count` is an error."""
+    from voxtool.kernels.cells2bit import nested_keys, scan
 
     cells = int(np.prod(np.asarray(dims, dtype=np.int64)))
     data = np.frombuffer(raw, dtype=np.uint8)
     capacity = min(count, 4 * data.shape[0])  # a header cannot make it allocate beyond its payload
-    ranks, codes = np.empty(capacity, dtype=np.int64), np.empty(capacity, dtype=np.uint8)
+    # three spare entries: the scan writes a byte's four cells before counting its changed ones
+    ranks, codes = np.empty(capacity + 3, dtype=np.int64), np.empty(capacity + 3, dtype=np.uint8)
     found = scan(data, cells, UNCHANGED, ranks, codes)
     if found < 0:
         raise FormatError(f"{where}: more changed cells than the header's {count}")
     if found != count:
         raise FormatError(f"{where}: {found} changed cells, header declares {count}")
+    ranks, codes = ranks[:found], codes[:found]
     if scheme == "hilbert":
         from voxtool.codec.hilbert import cells_at
 
-        xyz = cells_at(ranks, dims)
-        idx = xyz[:, 0] + int(dims[0]) * (xyz[:, 1] + int(dims[1]) * xyz[:, 2])
+        keys = cells_at(ranks, dims, lo, np.uint16)  # straight to keys: no nested index between
         if not ordered:
-            return idx, codes
+            return keys, codes
+        idx = keys[:, 0] + int(dims[0]) * (keys[:, 1] + int(dims[1]) * keys[:, 2].astype(np.int64))
         order = np.argsort(idx, kind="stable")
-        return idx[order], codes[order]
-    return ranks, codes
+        return keys[order], codes[order]
+    keys = np.empty((found, 3), dtype=np.uint16)
+    nested_keys(ranks, int(dims[0]), int(dims[1]), lo, keys)
+    return keys, codes
 
 
 def _cell_order(scheme: str, dims) -> np.ndarray | None:
@@ -329,7 +333,7 @@ def decode_packet(blob: bytes, where: str = "packet", ordered: bool = True) -> P
         if raw_size != count * width + (count + 3) // 4 or count > cells:
             raise FormatError(f"{where}: {count} RACER entries do not fit {raw_size} bytes")
     frames: list[tuple[int, np.ndarray]] = []
-    grid = None
+    grid = keys = None
     if codec in CM_CODECS and scheme != "nested":
         raise FormatError(f"{where}: codec {codec} with scheme {scheme} (cm codes nested boxes only)")
     if codec == "cm":
@@ -366,7 +370,7 @@ def decode_packet(blob: bytes, where: str = "packet", ordered: bool = True) -> P
     else:
         raw = _decompress(blob[HEADER.size:], codec, raw_size, where)
         if scheme in ("hilbert", "nested") and kind == KIND_DELTA:
-            idx_changed, states = _changed_cells(raw, scheme, dims_a, count, where, ordered)
+            keys, states = _changed_cells(raw, scheme, dims_a, lo_a, count, where, ordered)
         elif scheme in ("hilbert", "nested"):
             codes = unpack_2bit(raw, cells)
             order = _cell_order(scheme, dims_a)
@@ -381,12 +385,13 @@ def decode_packet(blob: bytes, where: str = "packet", ordered: bool = True) -> P
                 raise FormatError(f"{where}: keyframe holds 'unchanged' cells")
             idx_changed = np.flatnonzero(grid != UNCHANGED)
             states = grid[idx_changed]
-        if kind == KIND_DELTA and idx_changed.shape[0] != count:
-            raise FormatError(f"{where}: {idx_changed.shape[0]} changed cells, header declares {count}")
-        from voxtool.kernels.cells2bit import nested_keys
+        if keys is None:  # cells found as nested indices (a keyframe's grid, a cm stream)
+            if kind == KIND_DELTA and idx_changed.shape[0] != count:
+                raise FormatError(f"{where}: {idx_changed.shape[0]} changed cells, header declares {count}")
+            from voxtool.kernels.cells2bit import nested_keys
 
-        keys = np.empty((idx_changed.shape[0], 3), dtype=np.uint16)
-        nested_keys(np.ascontiguousarray(idx_changed, dtype=np.int64), int(dims_a[0]), int(dims_a[1]), lo_a, keys)
+            keys = np.empty((idx_changed.shape[0], 3), dtype=np.uint16)
+            nested_keys(np.ascontiguousarray(idx_changed, dtype=np.int64), int(dims_a[0]), int(dims_a[1]), lo_a, keys)
     elif scheme == "racer":
         width = address_width(dims_a)
         a = np.zeros((count, 8), dtype=np.uint8)

@@ -58,24 +58,36 @@ def sort_codes(a, scratch, first_bit=0):
 @njit(cache=True, nogil=True)
 def latest_per_code(codes, states):
     """(sorted unique codes, the state each had last) of changes listed in the order they came.
-    The codes are sorted with their states packed below them and de-duplicated in place."""
+    The codes are sorted with their states packed below them and de-duplicated in place: `codes`
+    is consumed, and the codes returned are a view of it (no second array of the batch)."""
     n = codes.shape[0]
-    packed = np.empty(n, dtype=np.int64)
     for i in range(n):
-        packed[i] = (codes[i] << 2) | states[i]  # states are 2-bit codes; the sort keeps their order
-    sort_codes(packed, np.empty(n, dtype=np.int64), 2)
+        codes[i] = (codes[i] << 2) | states[i]  # states are 2-bit codes; the sort keeps their order
+    sort_codes(codes, np.empty(n, dtype=np.int64), 2)
     k = 0
     for i in range(n):
-        if i + 1 < n and (packed[i + 1] >> 2) == (packed[i] >> 2):
+        if i + 1 < n and (codes[i + 1] >> 2) == (codes[i] >> 2):
             continue  # a later change of the same voxel follows
-        packed[k] = packed[i]  # k <= i: in place
+        codes[k] = codes[i]  # k <= i: in place
         k += 1
-    out_codes = np.empty(k, dtype=np.int64)
     out_states = np.empty(k, dtype=np.uint8)
     for i in range(k):
-        out_codes[i] = packed[i] >> 2
-        out_states[i] = packed[i] & 3
-    return out_codes, out_states
+        out_states[i] = codes[i] & 3
+        codes[i] >>= 2
+    return codes[:k], out_states
+
+
+@njit(cache=True, nogil=True)
+def drop_state(codes, states, n, state):
+    """Remove the entries of the first n whose state is `state`, in place, keeping the order of the
+    rest; returns how many are left."""
+    k = 0
+    for i in range(n):
+        if states[i] != state:
+            codes[k] = codes[i]
+            states[k] = states[i]
+            k += 1
+    return k
 
 
 @njit(cache=True, nogil=True)
