@@ -66,7 +66,8 @@ def _odometry(T, kind: str, ns: int, t, q_wxyz):
 
 
 def write_bag(path: Path, scans, kind: str = "ros1", mode: str = "tf", messages=None) -> Path:
-    """scans: [(sensor points, origin, q_wxyz)] at 10 Hz from 1 s; `messages(T, kind, i, ns)`
+    """scans: [(sensor points, origin, q_wxyz)] at 10 Hz from 1 s, posed by /tf (mode "tf"), an
+    Odometry topic ("odom") or nothing ("none"); `messages(T, kind, i, ns)`
     may give scan i's message instead of a PointCloud2 of its points (a LaserScan, a broken one).
     Returns what a user passes: the .bag file or the ROS 2 bag directory."""
     store = _store(kind)
@@ -84,11 +85,14 @@ def write_bag(path: Path, scans, kind: str = "ros1", mode: str = "tf", messages=
         first = messages(T, kind, 0, 1_000_000_000) if messages else None
         scan_type = first.__msgtype__ if first is not None else "sensor_msgs/msg/PointCloud2"
         c_scan = writer.add_connection("/points", scan_type, typestore=store)
-        c_tf = writer.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=store)
-        c_odom = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=store)
+        if mode != "none":  # "none": the clouds alone, no topic that could pose them
+            c_tf = writer.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=store)
+            c_odom = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=store)
         for i, (pts, origin, q) in enumerate(scans):
             ns = 1_000_000_000 + i * 100_000_000
-            if mode == "tf":
+            if mode == "none":
+                pass
+            elif mode == "tf":
                 writer.write(c_tf, ns, serialize(_transform(T, kind, "map", "odom", ns, (0, 0, 0), (1, 0, 0, 0)),
                                                  "tf2_msgs/msg/TFMessage"))
                 writer.write(c_tf, ns, serialize(_transform(T, kind, "odom", "lidar", ns, origin, q), "tf2_msgs/msg/TFMessage"))

@@ -203,7 +203,8 @@ def _source_option_list() -> list:
     """How a source is read: poses, frames, topics, the scan slice, the near-range cut."""
     return [
         click.option("--min-range", default=0.0, show_default=True, type=float, help="Drop points closer than this to the sensor."),
-        click.option("--poses", type=click.Path(path_type=Path), help="Pose file (TUM, index+TUM or KITTI), one row per scan file."),
+        click.option("--poses", type=click.Path(path_type=Path), help="Pose file (TUM, index+TUM or KITTI), one row per scan file, or per scan message of a ROS log "
+                     "(instead of its /tf; `voxtool odometry` writes one)."),
         click.option("--no-viewpoint", is_flag=True,
                      help="PCD points are already in the world frame; take only the ray origin from VIEWPOINT/--poses."),
         click.option("--topic", help="MCAP/bag PointCloud2 or LaserScan topic (default: the only one)."),

@@ -309,7 +309,7 @@ def _open_mcap(path: Path, options: SourceOptions) -> ScanStream:
     from voxtool.sources.mcap_ros2 import McapCloudSource
 
     src = McapCloudSource(path, options.topic, options.world_frame, options.pose_topic,
-                          recover=options.bad_scans == "skip")
+                          recover=options.bad_scans == "skip", own_poses=_log_poses_itself(options))
     return _log_stream("mcap", path, src, options)
 
 
@@ -317,18 +317,53 @@ def _open_bag(path: Path, options: SourceOptions) -> ScanStream:
     from voxtool.sources.rosbag import BagCloudSource
 
     src = BagCloudSource(path, options.topic, options.world_frame, options.pose_topic,
-                         recover=options.bad_scans == "skip")
+                         recover=options.bad_scans == "skip", own_poses=_log_poses_itself(options))
     return _log_stream("rosbag1" if src.path.suffix.lower() == ".bag" else "rosbag2", path, src, options)
 
 
+def _log_poses_itself(options: SourceOptions) -> bool:
+    """Whether a log's clouds are posed by its own /tf or pose topic: not when odometry reads them
+    in their sensor's frame, nor when a pose file (--poses) poses them."""
+    if options.poses is not None and (options.pose_topic is not None or options.world_frame is not None):
+        raise ParameterError("--poses poses a log's scans by message order: it goes without --pose-topic and "
+                             "--world-frame")
+    return not options.sensor_frame and options.poses is None
+
+
+STAMP_MATCH_NS = 1_000_000  # a pose row and its scan message stamped further apart are not of one log
+
+
 def _log_stream(kind: str, path: Path, src, options: SourceOptions) -> ScanStream:
-    """The scans of a log of ROS messages (an MCAP file, a bag): one source per message."""
+    """The scans of a log of ROS messages (an MCAP file, a bag): one source per message. With
+    --poses, row i of the pose file poses scan message i of the topic (`voxtool odometry` of the
+    log writes one row per message, stamped as the message)."""
     bad = BadScans(options.bad_scans)
+    rows = None
+    if options.poses is not None:
+        from voxtool.sources.poses import read_poses
+
+        rows = read_poses(options.poses)
+        if src.count is not None and len(rows) != src.count:
+            raise SourceError(f"{options.poses}: pose file has {len(rows)} poses for {src.count} scan messages of "
+                              f"'{src.topic}' in {path}")
+
+    def posed(i: int, stamp: int) -> Pose:
+        if i >= len(rows):
+            raise SourceError(f"{options.poses}: pose file has {len(rows)} poses, {path} has more scan messages on "
+                              f"'{src.topic}'")
+        row_stamp, pose = rows[i]
+        if row_stamp is not None and abs(round(row_stamp * 1e9) - stamp) > STAMP_MATCH_NS:
+            raise SourceError(f"{options.poses}: row {i + 1} is stamped {row_stamp:.6f} s, scan message {i} of "
+                              f"'{src.topic}' {stamp / 1e9:.6f} s: a pose file of another log or topic (KITTI rows, "
+                              "without times, pose by order alone)")
+        return pose
 
     def scans() -> Iterator[Scan]:
         read = 0
         for i, points, pose, stamp, nbytes, misses in src.scans(options.start, options.stop, options.every, bad):
             read += 1
+            if rows is not None:
+                pose = posed(i, stamp)
             yield make_scan(points, pose, i, stamp, f"{path}#{i}", nbytes, options, misses=misses)
         lost = src.lost() if hasattr(src, "lost") else ""
         if lost and not read:
@@ -347,6 +382,9 @@ def _log_stream(kind: str, path: Path, src, options: SourceOptions) -> ScanStrea
 def _open_graph(path: Path, options: SourceOptions) -> ScanStream:
     from voxtool.sources.graph import count_graph_nodes, iter_graph
 
+    if options.poses is not None:  # never silently ignored
+        raise ParameterError(f"{path}: an OctoMap graph holds its scans' poses; --poses is for scan folders, KITTI "
+                             "sequences and ROS logs")
     n = count_graph_nodes(path)
 
     def scans() -> Iterator[Scan]:

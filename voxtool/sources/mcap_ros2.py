@@ -12,7 +12,7 @@ import numpy as np
 
 from voxtool.errors import FormatError, SourceError, mcap_problem
 from voxtool.sources.ros_msgs import scan_messages, scan_topic
-from voxtool.sources.tf import POSE_TYPES, SensorPoses, tf_topics
+from voxtool.sources.tf import POSE_TYPES, SensorFrame, SensorPoses, tf_topics
 
 
 def _decode_errors() -> tuple:
@@ -32,7 +32,9 @@ class McapCloudSource:
     """Streams (sensor points, pose, stamp, raw bytes) from a ROS 2 MCAP file."""
 
     def __init__(self, path: str | Path, topic: str | None, world_frame: str | None, pose_topic: str | None,
-                 recover: bool = False) -> None:
+                 recover: bool = False, own_poses: bool = True) -> None:
+        """own_poses False: the file's /tf and pose topics are not read, every cloud is at the
+        identity (SensorFrame)."""
         from mcap.reader import make_reader
 
         self.path = Path(path)
@@ -78,7 +80,7 @@ class McapCloudSource:
         self._tf_topics = tf_topics(topics)
         self._topics = topics
         self._msgtype = topics[topic]
-        self._poses: SensorPoses | None = None
+        self._poses: SensorPoses | SensorFrame | None = None if own_poses else SensorFrame()
 
     def _load_poses(self) -> None:
         """The sensor poses (--pose-topic) or the /tf edges, read once per process and file: a
@@ -143,7 +145,8 @@ class McapCloudSource:
         2000 before; without an index they are read but not decoded. A message that cannot be
         decoded or posed goes to `on_bad` (which raises, or records it and lets reading go on);
         a file that cannot be read on from a message ends there."""
-        self._load_poses()
+        if self._poses is None:
+            self._load_poses()
         decoders: dict[int, object] = {}
         index, starting_at = 0, None
         times = self._log_times() if start > 0 else None

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from voxtool.errors import SourceError
 from voxtool.sources.ros_msgs import scan_messages, scan_topic
-from voxtool.sources.tf import POSE_TYPES, SensorPoses, tf_topics
+from voxtool.sources.tf import POSE_TYPES, SensorFrame, SensorPoses, tf_topics
 
 
 def bag_errors() -> tuple:
@@ -248,8 +248,9 @@ class BagCloudSource:
     """Streams (index, sensor points, pose, stamp, raw bytes) of one scan topic of a bag."""
 
     def __init__(self, path: str | Path, topic: str | None, world_frame: str | None, pose_topic: str | None,
-                 recover: bool = False, bag=None) -> None:
-        """bag: the bag already opened by open_bag() (else it is opened here)."""
+                 recover: bool = False, bag=None, own_poses: bool = True) -> None:
+        """bag: the bag already opened by open_bag() (else it is opened here). own_poses False:
+        the bag's /tf and pose topics are not read, every cloud is at the identity (SensorFrame)."""
         self.path = Path(path)
         self._bag = bag if bag is not None else open_bag(self.path, recover)
         topics = self._bag.topics
@@ -261,9 +262,9 @@ class BagCloudSource:
             raise SourceError(f"{self.path}: pose topic '{pose_topic}' is not Odometry or PoseStamped "
                               f"(it is {topics.get(pose_topic) or 'not in the bag'}; the bag's pose topics: "
                               f"{', '.join(candidates) or 'none'})")
-        self._poses = SensorPoses(str(self.path), world_frame, pose_topic, topics)
+        self._poses = SensorPoses(str(self.path), world_frame, pose_topic, topics) if own_poses else SensorFrame()
         self._tf_topics = tf_topics(topics)
-        self._poses_read = False
+        self._poses_read = not own_poses
 
     def lost(self) -> str:
         """How much of the file could not be read (empty: all of it)."""

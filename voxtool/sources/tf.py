@@ -39,11 +39,12 @@ def tf_topics(topics: dict[str, str]) -> list[str]:
 
 def pose_hint(where: str, frame: str, topics: dict[str, str]) -> str:
     """What would pose a log's scans when its /tf cannot: its Odometry / PoseStamped topics (for
-    --pose-topic), or a static sensor's own frame (--world-frame)."""
+    --pose-topic), a static sensor's own frame (--world-frame), or LiDAR odometry's poses."""
     candidates = sorted(t for t, s in topics.items() if s in POSE_TYPES)
     options = [f"--pose-topic {t}" for t in candidates[:3]]
     options.append(f"--world-frame {frame} (a static sensor: the map in its own frame)")
-    return "pose them with " + ", or ".join(options)
+    return ("pose them with " + ", or ".join(options) + f"; or estimate them: `voxtool odometry {where} -o poses.txt`, "
+            "then --poses poses.txt")
 
 
 def header_stamp(header) -> int:
@@ -84,6 +85,14 @@ class StampedPoses:
         if i == len(s):
             return self.poses[-1] if stamp - s[-1] <= STAMP_TOLERANCE_NS else None
         return interpolate_pose(stamp, s[i - 1], self.poses[i - 1], s[i], self.poses[i])
+
+
+class SensorFrame:
+    """The poses of a log read without its own (odometry registers the clouds in their sensor's
+    frame; a --poses file poses them by message order): every cloud at the identity, no /tf read."""
+
+    def pose_at(self, frame: str, stamp: int) -> Pose:
+        return Pose.identity()
 
 
 class SensorPoses:
