@@ -292,6 +292,7 @@ def save_state_map(path, result: FusionResult, info: dict) -> None:
     pruned in place into the snapshot's leaves (the fused set is the largest thing in memory;
     a second copy was the command's peak), and the result is left without them."""
     from voxtool.config import MapParams, SensorModel
+    from voxtool.heap import give_back_freed_memory
     from voxtool.io.mapfile import save_map
     from voxtool.io.snapshot import ChunkedArrays
     from voxtool.kernels.sort import prune_into
@@ -299,8 +300,6 @@ def save_state_map(path, result: FusionResult, info: dict) -> None:
 
     sensor = SensorModel()
     m = OctreeMap(MapParams(resolution=result.resolution or 0.1), sensor)  # its parameters; the leaves are below
-    from voxtool.heap import give_back_freed_memory
-
     codes, states = np.ascontiguousarray(result.codes), np.ascontiguousarray(result.states)
     result.codes = result.states = None
     give_back_freed_memory()  # fusion's freed batches, before the save adds its own memory

@@ -154,14 +154,16 @@ def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source:
     )
 
 
-def _pose_rows(options: SourceOptions, n_scans: int) -> list | None:
+def _pose_rows(options: SourceOptions, n_scans: int | None, scans: str = "scans") -> list | None:
+    """The --poses rows, one per scan (`scans` says what a scan is in the message); None without
+    --poses. n_scans None: not known before reading (a log read from its start), not checked."""
     if options.poses is None:
         return None
     from voxtool.sources.poses import read_poses
 
     rows = read_poses(options.poses)
-    if len(rows) != n_scans:
-        raise SourceError(f"{options.poses}: pose file has {len(rows)} poses for {n_scans} scans")
+    if n_scans is not None and len(rows) != n_scans:
+        raise SourceError(f"{options.poses}: pose file has {len(rows)} poses for {n_scans} {scans}")
     return rows
 
 
@@ -338,14 +340,7 @@ def _log_stream(kind: str, path: Path, src, options: SourceOptions) -> ScanStrea
     --poses, row i of the pose file poses scan message i of the topic (`voxtool odometry` of the
     log writes one row per message, stamped as the message)."""
     bad = BadScans(options.bad_scans)
-    rows = None
-    if options.poses is not None:
-        from voxtool.sources.poses import read_poses
-
-        rows = read_poses(options.poses)
-        if src.count is not None and len(rows) != src.count:
-            raise SourceError(f"{options.poses}: pose file has {len(rows)} poses for {src.count} scan messages of "
-                              f"'{src.topic}' in {path}")
+    rows = _pose_rows(options, src.count, f"scan messages of '{src.topic}' in {path}")
 
     def posed(i: int, stamp: int) -> Pose:
         if i >= len(rows):
