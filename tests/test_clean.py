@@ -24,14 +24,18 @@ SMALL_LIDAR = Lidar(beams=16, columns=360, max_range=40.0, range_noise=0.01)
     ([0, 0, 0, 1], [0, 0, 0, 1], 100.0, 100.0),  # perfect
     ([1, 0, 0, 0], [0, 0, 0, 1], 2 / 3 * 100, 0.0),  # a static point removed, the dynamic one kept
     ([1, 1, 0, 1], [0, 0, 1, 1], 0.0, 50.0),
-    ([0, 0, 0], [0, 0, 0], 100.0, 100.0),  # no dynamic point: DA has nothing to judge
-    ([1, 1], [1, 1], 100.0, 100.0),
+    ([0, 0, 0], [0, 0, 0], 100.0, None),  # no dynamic point: DA has nothing to judge, and is not a 100
+    ([1, 0, 0], [0, 0, 0], 2 / 3 * 100, None),
+    ([1, 1], [1, 1], None, 100.0),  # no static point: SA is not known
 ])
 def test_accuracy_on_hand_made_labels(dynamic, truth, sa, da):
     got = accuracy(np.array(dynamic, bool), np.array(truth, bool))
-    assert got["SA"] == pytest.approx(sa)
-    assert got["DA"] == pytest.approx(da)
-    assert got["AA"] == pytest.approx(np.sqrt(sa * da))
+    assert got["SA"] == pytest.approx(sa) if sa is not None else got["SA"] is None
+    assert got["DA"] == pytest.approx(da) if da is not None else got["DA"] is None
+    if sa is None or da is None:
+        assert got["AA"] is None
+    else:
+        assert got["AA"] == pytest.approx(np.sqrt(sa * da))
 
 
 def test_accuracy_refuses_labels_of_another_length():
@@ -304,6 +308,16 @@ def test_a_static_world_loses_no_point(tmp_path):
     cleaned = clean_stream(open_source(tmp_path / "scans"), CleanParams(), threads=2, progress=False)
     assert cleaned.points.shape[0] == truth.shape[0] > 10_000
     assert not cleaned.dynamic.any()
+    # scored against a truth with no moving point: DA and AA are not known (null), not a perfect 100
+    np.save(tmp_path / "truth.npy", truth)
+    code, text, err = cli("clean", tmp_path / "scans", "--truth", tmp_path / "truth.npy", "--labels", tmp_path / "l.npy",
+                          "--json", "--no-progress")
+    assert code == 0, err
+    got = json.loads(text)["accuracy"]
+    assert got["SA"] == 100.0 and got["DA"] is None and got["AA"] is None and got["dynamic_points"] == 0
+    text = cli("clean", tmp_path / "scans", "--truth", tmp_path / "truth.npy", "--labels", tmp_path / "l.npy",
+               "--no-progress")[1]
+    assert "DA n/a of 0 dynamic removed, AA n/a (no moving point in the truth" in text
 
 
 def test_the_street_scores_high(tmp_path):

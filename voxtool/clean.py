@@ -416,8 +416,7 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     }
     if truths and all(t is not None for t in truths):
         truth = np.concatenate(truths)
-        figures["accuracy"] = {**{k: round(v, 4) for k, v in accuracy(dynamic, truth).items()},
-                               "dynamic_points": int(truth.sum()), "static_points": int((~truth).sum())}
+        figures["accuracy"] = accuracy_figures(dynamic, truth)
     return Cleaned(points, dynamic, starts, figures)
 
 
@@ -482,8 +481,7 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
         if truth.shape[0] != cleaned.dynamic.shape[0]:
             raise ParameterError(f"{truth_npy}: {truth.shape[0]:,} labels for the {cleaned.dynamic.shape[0]:,} points "
                                  "judged (one per point, in scan order, as --labels writes them)")
-        cleaned.figures["accuracy"] = {**{k: round(v, 4) for k, v in accuracy(cleaned.dynamic, truth).items()},
-                                       "dynamic_points": int(truth.sum()), "static_points": int((~truth).sum())}
+        cleaned.figures["accuracy"] = accuracy_figures(cleaned.dynamic, truth)
     t0 = time.perf_counter()
     if output is not None:
         write_cloud_points(output, cleaned.points[~cleaned.dynamic], options.origin, params.resolution)
@@ -517,15 +515,22 @@ def read_truth_npy(path: str | os.PathLike) -> np.ndarray:
     return labels.astype(bool)
 
 
-def accuracy(dynamic: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+def accuracy(dynamic: np.ndarray, truth: np.ndarray) -> dict[str, float | None]:
     """The DynamicMap benchmark's scores of per-point labels against ground truth: static
     accuracy SA (static points kept), dynamic accuracy DA (dynamic points removed) and their
-    geometric mean AA, in percent; SA or DA is 100 where there is nothing of its kind to judge."""
+    geometric mean AA, in percent. A score with nothing of its kind to judge is None (no moving
+    point: DA and AA are not known, and a 100 there would read as a cleaner that found every mover)."""
     dynamic = np.asarray(dynamic, dtype=bool)
     truth = np.asarray(truth, dtype=bool)
     if dynamic.shape != truth.shape:
         raise ParameterError(f"labels of {dynamic.shape[0]} points against a ground truth of {truth.shape[0]}")
     static = ~truth
-    sa = 100.0 * float(np.count_nonzero(~dynamic & static)) / max(int(static.sum()), 1) if static.any() else 100.0
-    da = 100.0 * float(np.count_nonzero(dynamic & truth)) / max(int(truth.sum()), 1) if truth.any() else 100.0
-    return {"SA": sa, "DA": da, "AA": float(np.sqrt(sa * da))}
+    sa = 100.0 * float(np.count_nonzero(~dynamic & static)) / int(static.sum()) if static.any() else None
+    da = 100.0 * float(np.count_nonzero(dynamic & truth)) / int(truth.sum()) if truth.any() else None
+    return {"SA": sa, "DA": da, "AA": None if sa is None or da is None else float(np.sqrt(sa * da))}
+
+
+def accuracy_figures(dynamic: np.ndarray, truth: np.ndarray) -> dict:
+    """accuracy() rounded as `clean --json` reports it, with the counts of each kind."""
+    scores = {k: None if v is None else round(v, 4) for k, v in accuracy(dynamic, truth).items()}
+    return {**scores, "dynamic_points": int(truth.sum()), "static_points": int((~truth).sum())}

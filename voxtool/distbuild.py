@@ -26,9 +26,11 @@ from voxtool.config import MapParams, SensorModel
 from voxtool.kernels import octree as K
 from voxtool.maps.shards import DEFAULT_SHARD_DEPTH, ShardedOctree
 from voxtool.sources import SourceOptions, open_source
+from voxtool.sources.scan import add_drop_counts
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-COUNTERS = ("scans", "points", "points_dropped", "points_dropped_nonfinite", "points_dropped_min_range", "raw_bytes",
+COUNTERS = ("scans", "points", "points_dropped", "points_dropped_nonfinite", "points_dropped_at_origin",
+            "points_dropped_min_range", "raw_bytes",
             "voxel_updates", "ray_steps", "rays", "merged_rays")
 
 
@@ -104,9 +106,7 @@ def cast_batch(sources: list[str], options: SourceOptions, params: MapParams, pi
                 stamps.append(scan.stamp_ns)
                 counts["scans"] += 1
                 counts["points"] += scan.points_read
-                counts["points_dropped"] += scan.points_dropped
-                counts["points_dropped_nonfinite"] += scan.dropped_nonfinite
-                counts["points_dropped_min_range"] += scan.dropped_min_range
+                add_drop_counts(counts, scan)
                 counts["raw_bytes"] += scan.raw_bytes
                 counts["voxel_updates"] += int(packed.shape[0])
                 counts["ray_steps"] += steps

@@ -21,6 +21,7 @@ from voxtool.config import MapParams, SensorModel
 from voxtool.errors import ParameterError, VoxtoolError
 from voxtool.maps.base import Leaves
 from voxtool.sources import ScanStream, SourceOptions, open_source
+from voxtool.sources.scan import add_drop_counts
 
 
 class AccuracyError(VoxtoolError):
@@ -85,10 +86,12 @@ def evaluate(source: str | os.PathLike, options: SourceOptions, params: MapParam
     rows, wrong_codes, unknown_codes = [], [], []
     thr = np.float32(sensor.threshold_log)
     stream = open_source(source, options)
+    dropped = {k: v for k, v in report.to_dict().items() if k.startswith("points_dropped")}  # of the scans built
     with bar(len(held), "eval", progress, "scan") as steps:
         for scan in stream.scans:
             if scan.index not in held_set:
                 continue
+            add_drop_counts(dropped, scan)
             packed, _, _ = scan_updates(scan, params, backend.threads)
             codes, hit = packed >> 1, (packed & 1).astype(bool)
             log_odds, _ = backend.query_depth(codes)
@@ -103,7 +106,7 @@ def evaluate(source: str | os.PathLike, options: SourceOptions, params: MapParam
     total = {k: sum(r[k] for r in rows) for k in ("points", "correct", "wrong", "unknown")}
     total["percent_correct"] = _percent(total["correct"], total["wrong"])
     figures = {"source": str(source), "resolution": params.resolution, "max_range": params.max_range,
-               "scans": count, "scans_built": report.scans, "held_out": [int(i) for i in held],
+               "scans": count, "scans_built": report.scans, "held_out": [int(i) for i in held], **dropped,
                "origin": [float(v) for v in options.origin] if options.origin is not None else [0.0, 0.0, 0.0],
                "total": total, "per_scan": rows,
                "timings_s": {"build": round(t_build, 6), "total": round(time.perf_counter() - t0, 6)}}

@@ -19,6 +19,7 @@ import numpy as np
 
 from voxtool.errors import ParameterError
 from voxtool.sources import SourceOptions, open_source
+from voxtool.sources.scan import add_drop_counts
 
 EXTRA = "pip install 'voxtool[odometry]' (KISS-ICP LiDAR odometry)"
 
@@ -58,7 +59,7 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
 
     odometry = _kiss_icp(params)
     stream = open_source(source, replace(options, sensor_frame=True, origin=None))
-    poses, stamps, points = [], [], 0
+    poses, stamps, points, dropped = [], [], 0, {}
     t0 = time.perf_counter()
     for scan in track(stream.scans, stream.count, "odometry", progress, unit="scan"):
         cloud = scan.points.astype(np.float64)
@@ -66,6 +67,7 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
         poses.append(odometry.last_pose.copy())
         stamps.append(scan.stamp_ns)
         points += cloud.shape[0]
+        add_drop_counts(dropped, scan)
     seconds = time.perf_counter() - t0
     if not poses:
         raise ParameterError(f"{source}: no scan to register")
@@ -77,7 +79,7 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
     path_m = float(sum(np.linalg.norm(b[:3, 3] - a[:3, 3]) for a, b in zip(poses, poses[1:])))
     against = against_source_poses(source, options, np.array([m[:3, 3] for m in poses]), path_m)
     return {"poses": np.array(poses), "stamps_ns": np.array(stamps, dtype=np.int64),
-            "figures": {"source": str(source), "scans": len(poses), "points": points, "path_m": round(path_m, 6),
+            "figures": {"source": str(source), "scans": len(poses), "points": points, **dropped, "path_m": round(path_m, 6),
                         "against_source_poses": against,
                         "params": {"max_range": params.max_range, "min_range": params.min_range,
                                    "voxel_size": params.voxel_size or params.max_range / 100.0},

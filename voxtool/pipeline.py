@@ -21,6 +21,7 @@ class BuildReport:
     points: int = 0
     points_dropped: int = 0
     points_dropped_nonfinite: int = 0
+    points_dropped_at_origin: int = 0
     points_dropped_min_range: int = 0
     no_returns: int = 0  # beams that saw nothing (LaserScan range_max / +Inf): free space only
     raw_bytes: int = 0
@@ -55,6 +56,7 @@ class BuildReport:
             "points": self.points,
             "points_dropped": self.points_dropped,
             "points_dropped_nonfinite": self.points_dropped_nonfinite,
+            "points_dropped_at_origin": self.points_dropped_at_origin,
             "points_dropped_min_range": self.points_dropped_min_range,
             "no_returns": self.no_returns,
             "scans_unposed": self.scans_unposed,
@@ -154,9 +156,8 @@ def build(stream: ScanStream, backend: MapBackend, progress: bool | None = None,
             report.merged_rays += timing.merged_rays
             report.scans += 1
             report.points += scan.points_read
-            report.points_dropped += scan.points_dropped
-            report.points_dropped_nonfinite += scan.dropped_nonfinite
-            report.points_dropped_min_range += scan.dropped_min_range
+            for key, n in scan.drop_counts().items():
+                setattr(report, key, getattr(report, key) + n)
             report.no_returns += scan.no_returns
             report.raw_bytes += scan.raw_bytes
             if report.first_stamp_ns is None:

@@ -118,7 +118,13 @@ def clean(source, sample, output, labels, dynamic, png, view, above_ground, reso
     ]
     if "accuracy" in result:
         a = result["accuracy"]
-        rows.append(("against --truth", f"SA {a['SA']:.2f} % of {a['static_points']:,} static points kept, DA "
-                                        f"{a['DA']:.2f} % of {a['dynamic_points']:,} dynamic removed, AA {a['AA']:.2f}"))
+        def score(v, unit=" %"):
+            return "n/a" if v is None else f"{v:.2f}{unit}"
+
+        rows.append(("against --truth", f"SA {score(a['SA'])} of {a['static_points']:,} static points kept, DA "
+                                        f"{score(a['DA'])} of {a['dynamic_points']:,} dynamic removed, AA "
+                                        f"{score(a['AA'], '')}" + (" (no moving point in the truth: nothing to "
+                                                                   "find, so DA and AA are not known)"
+                                                                   if a["DA"] is None else "")))
     written = [p for p in (output, labels, dynamic, png) if p is not None]
     emit(result, as_json, rows, written=written if len(written) > 1 else written[0])

@@ -152,6 +152,14 @@ def emit_fleet(report: dict, as_json: bool, value) -> None:
         raise err
 
 
+def dropped_text(counts: dict) -> str:
+    """'N dropped: n1 why1, n2 why2' of a command's drop counts (Scan.drop_counts' keys)."""
+    from voxtool.sources.scan import DROP_REASONS
+
+    why = [f"{counts[k]:,} {what}" for k, what in DROP_REASONS.items() if counts.get(k)]
+    return f"{counts.get('points_dropped', 0):,} dropped" + (f": {', '.join(why)}" if why else "")
+
+
 def summary_rows(stats: dict) -> list[tuple[str, str]]:
     """A map's statistics as `build`, `stats` and `decode` print them (docs/parameters.md)."""
     bbox = stats.get("occupied_bbox")
@@ -173,10 +181,7 @@ def summary_rows(stats: dict) -> list[tuple[str, str]]:
         rows.append(("local origin", f"{stats['origin']} in the scans' frame (the bbox and a .bt are relative to it; "
                                      ".ply/.pcd/.mcap/.pgm exports are in the scans' frame)"))
     if "scans" in stats:
-        why = [f"{stats.get(k, 0):,} {what}" for k, what in (("points_dropped_nonfinite", "not finite (NaN/Inf) or below a LaserScan's range_min"),
-                                                                ("points_dropped_min_range", "nearer than --min-range"))
-               if stats.get(k)]
-        dropped = f"{stats['points_dropped']:,} dropped" + (f": {', '.join(why)}" if why else "")
+        dropped = dropped_text(stats)
         if stats.get("no_returns"):
             dropped += f"; {stats['no_returns']:,} no-return beams cleared free space only"
         rows += [("scans", f"{stats['scans']:,}"), ("points", f"{stats['points']:,} ({dropped})")]

@@ -10,6 +10,7 @@ from voxtool.cli.common import (
     backend_options,
     backend_setup,
     cluster_options,
+    dropped_text,
     emit,
     emit_fleet,
     handle_errors,
@@ -83,6 +84,7 @@ def encode_rows(r: dict) -> list[tuple[str, str]]:
     rows = [
         ("robot", f"{r['robot']} ({r['scheme']} order, {r['codec']} payloads)"),
         ("scans", f"{r['scans']:,} over {r['duration_s']:.2f} s of scan time"),
+        *([("points", dropped_text(r))] if r.get("points_dropped") else []),
         ("packets", f"{r['packets']:,}" + (f" ({r['keyframes']:,} keyframes)" if r.get("keyframes") else "")),
         ("log size", f"{r['bytes']:,} bytes for {r['changed_voxels']:,} voxel changes "
                      f"({r['bytes_per_changed_voxel']:.3f} bytes a change)"),

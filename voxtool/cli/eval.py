@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from voxtool.cli.common import (
+    dropped_text,
     emit,
     handle_errors,
     int_list,
@@ -72,6 +73,8 @@ def eval_cmd(source, sample, holdout_every, holdout, threads, min_correct, png, 
     rows += [("held out", f"{len(figures['held_out'])} of {figures['scans']} scans (map of the other "
                           f"{figures['scans_built']})"),
              ("total", _counts(figures["total"]))]
+    if figures.get("points_dropped"):
+        rows.append(("points", dropped_text(figures) + " on reading"))
     emit(figures, as_json, rows, written=written)
     check_min_correct(figures, min_correct)
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors, resolve_source
+from voxtool.cli.common import dropped_text, emit, handle_errors, resolve_source
 
 
 @click.command("odometry")
@@ -51,7 +51,7 @@ def odometry(source, sample, output, max_range, min_range, voxel_size, topic, ba
     kind = write_pose_file(output, result["poses"], result["stamps_ns"])
     figures = {**result["figures"], "format": kind}
     t = figures["timings_s"]
-    rows = [("scans", f"{figures['scans']:,} ({figures['points']:,} points)"),
+    rows = [("scans", f"{figures['scans']:,} ({figures['points']:,} points registered; {dropped_text(figures)})"),
             ("path", f"{figures['path_m']:.2f} m travelled (first scan's frame)"),
             ("format", "TUM (t x y z qx qy qz qw)" if kind == "tum" else "KITTI rows (the scans have no times)"),
             ("time", f"{t['total']:.2f} s, {t['per_scan_ms']:.1f} ms a scan")]

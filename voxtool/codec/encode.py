@@ -6,7 +6,7 @@ import math
 import sys
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -17,6 +17,7 @@ from voxtool.keys import key_bounds, morton_decode
 from voxtool.maps.base import MapBackend, removed_voxels, update_codes
 from voxtool.parallel import one_blas_thread, resolve_threads, run_parts
 from voxtool.sources import ScanStream
+from voxtool.sources.scan import add_drop_counts
 
 
 def robot_from_path(path) -> str:
@@ -122,6 +123,7 @@ class EncodeReport:
     time_map_s: float = 0.0
     time_encode_s: float = 0.0
     encoded_cells: int = 0
+    dropped: dict = field(default_factory=dict)  # points dropped on reading, by reason (Scan.drop_counts)
 
     def to_dict(self) -> dict:
         span = max(self.last_stamp_ns - self.first_stamp_ns, 1) / 1e9
@@ -133,6 +135,7 @@ class EncodeReport:
             "bytes_per_changed_voxel": round(self.wire_bytes / max(self.changed_voxels, 1), 4),
             "time_map_s": round(self.time_map_s, 4), "time_encode_s": round(self.time_encode_s, 4),
             "encode_cells_per_s": round(self.encoded_cells / max(self.time_encode_s, 1e-9)),
+            **self.dropped,
         }
 
 
@@ -241,6 +244,7 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
                 pend_codes, pend_states = merge_latest(pend_codes, pend_states, codes[changed], after[changed])
                 rep.scans += 1
                 rep.raw_sensor_bytes += scan.raw_bytes
+                add_drop_counts(rep.dropped, scan)
                 rep.last_stamp_ns = stamp
                 if last_emit is None:
                     last_emit = stamp

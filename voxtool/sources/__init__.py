@@ -116,8 +116,12 @@ def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source:
     if options.sensor_frame:
         pose = Pose.identity()
     finite = np.isfinite(points).all(axis=1)
-    kept = points[finite]
-    extra = {name: values[finite] for name, values in (per_point or {}).items()}
+    # a point exactly at the sensor's position is no surface: drivers write "no return" as (0, 0, 0)
+    # in organized clouds, and one such point per scan marks the sensor's own voxel as a hit
+    sensor = pose.translation.astype(points.dtype) if world_frame_points else np.zeros(3, points.dtype)
+    at_origin = finite & (points == sensor).all(axis=1)
+    kept = points[finite & ~at_origin]
+    extra = {name: values[finite & ~at_origin] for name, values in (per_point or {}).items()}
     if options.origin is not None:
         if isinstance(options.origin, str):
             raise ParameterError(f"--origin {options.origin} was not resolved (resolve_origin) before reading {source}")
@@ -146,6 +150,7 @@ def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source:
         source=source,
         points_read=int(points.shape[0]),
         dropped_nonfinite=int((~finite).sum()) - (0 if miss_points is None else int(miss_points.shape[0])),
+        dropped_at_origin=int(at_origin.sum()),
         dropped_min_range=dropped_min,
         raw_bytes=raw_bytes,
         misses=None if miss_points is None else np.ascontiguousarray(miss_points, dtype=np.float32),

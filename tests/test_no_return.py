@@ -1,0 +1,77 @@
+"""Points that are not returns: a point exactly at the sensor's own position ("no return" as many
+drivers write it in organized clouds) is dropped and counted by every command that reads scans,
+and the results equal those of the same scans without it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from conftest import cli
+from test_clean import one_moving_box
+
+from voxtool.io.export import pcd_header, pcd_rows
+from voxtool.io.mapfile import load_map
+from voxtool.sources.pcd import read_pcd
+from voxtool.synthetic import write_pcd_scans
+
+
+@pytest.fixture(scope="module")
+def scans_with_and_without(tmp_path_factory):
+    """(scans, the same scans each with one (0, 0, 0) point added, their number)."""
+    root = tmp_path_factory.mktemp("no_return")
+    plain = root / "plain"
+    write_pcd_scans(one_moving_box(12), plain)
+    zeros = root / "zeros"
+    shutil.copytree(plain, zeros)
+    files = sorted(zeros.glob("*.pcd"))
+    for f in files:
+        cloud = read_pcd(f)
+        points = np.insert(cloud.xyz.astype(np.float32), len(cloud.xyz) // 2, 0.0, axis=0)  # mid-scan, as organized
+        f.write_bytes(pcd_header(len(points), False, viewpoint=cloud.viewpoint) + pcd_rows(points, None))
+    return plain, zeros, len(files)
+
+
+def _json(*args):
+    code, text, err = cli(*args, "--json", "--no-progress")
+    assert code == 0, err
+    return json.loads(text)
+
+
+def test_build_drops_and_counts_points_at_the_sensor(scans_with_and_without, tmp_path):
+    plain, zeros, n = scans_with_and_without
+    a = _json("build", plain, "-o", tmp_path / "a.vxm", "--resolution", "0.1")
+    b = _json("build", zeros, "-o", tmp_path / "b.vxm", "--resolution", "0.1")
+    assert b["points"] == a["points"] + n
+    assert b["points_dropped_at_origin"] == b["points_dropped"] == n and a["points_dropped"] == 0
+    la, lb = load_map(tmp_path / "a.vxm")[0].leaves(), load_map(tmp_path / "b.vxm")[0].leaves()
+    assert np.array_equal(la.codes, lb.codes) and np.array_equal(la.values, lb.values)
+    text = cli("build", zeros, "-o", tmp_path / "c.vxm", "--resolution", "0.1", "--no-progress")[1]
+    assert f"{n} dropped: {n} at the sensor's own position" in text
+
+
+def test_clean_judges_the_scans_as_without_those_points(scans_with_and_without, tmp_path):
+    """One such point per scan made every scan's sensor voxel a hit, and clean removed nothing."""
+    plain, zeros, n = scans_with_and_without
+    a = _json("clean", plain, "--labels", tmp_path / "a.npy", "--resolution", "0.1")
+    b = _json("clean", zeros, "--labels", tmp_path / "b.npy", "--resolution", "0.1")
+    assert a["points_removed"] > 500  # the moving box
+    assert np.array_equal(np.load(tmp_path / "a.npy"), np.load(tmp_path / "b.npy"))
+    assert b["points_removed"] == a["points_removed"] and b["points_dropped"] == n
+
+
+def test_encode_and_eval_count_them(scans_with_and_without, tmp_path):
+    _, zeros, n = scans_with_and_without
+    enc = _json("encode", zeros, "-o", tmp_path / "z.mcap", "--resolution", "0.2")
+    assert enc["points_dropped_at_origin"] == n
+    ev = _json("eval", zeros, "--resolution", "0.2")
+    assert ev["points_dropped_at_origin"] == n and ev["points_dropped"] == n
+
+
+def test_odometry_counts_them(scans_with_and_without, tmp_path):
+    pytest.importorskip("kiss_icp")
+    _, zeros, n = scans_with_and_without
+    got = _json("odometry", zeros, "-o", tmp_path / "poses.txt")
+    assert got["points_dropped_at_origin"] == n
