@@ -9,6 +9,15 @@ ground or not by:
 - Patchwork++ (PyPI `pypatchworkpp`, a benchmark extra), scan by scan in the sensor frame.
 Truth: SemanticKITTI's road, parking, sidewalk, other-ground, lane-marking and terrain classes
 (40, 44, 48, 49, 60, 72). Prints precision, recall and time per scan; writes bench-results/ground.json.
+
+The grid table (`export --above-ground 0.3,2` of each sequence's map, what a planner drives on):
+- road free: the share of cells holding road, parking, sidewalk or other-ground points (40, 44, 48,
+  49) and no object point that the grid marks free;
+- objects occupied: the share of cells holding at least two labelled object points (classes 10-99
+  but the ground's) 0.3-2 m above the labelled ground under them (the median height of the ground
+  points within 1 m) that it marks occupied;
+- path free: the share of cells within 2 m of the driven path (the sensor's positions, joined)
+  that it marks free; `--pcd DIR --poses FILE` adds an unlabelled dump (path free only).
 """
 
 from __future__ import annotations
@@ -55,6 +64,109 @@ def map_ground(sequence: Path, resolution: float, band: float) -> tuple[np.ndarr
     return np.concatenate(flags), time.perf_counter() - t0
 
 
+ROAD_CLASSES = (40, 44, 48, 49)
+BAND = (0.3, 2.0)
+
+
+def _cells(grid, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row, col) of world (x, y) in the grid, and whether they fall inside it."""
+    col = np.floor((xy[:, 0] - grid.origin[0]) / grid.resolution).astype(np.int64)
+    row = np.floor((xy[:, 1] - grid.origin[1]) / grid.resolution).astype(np.int64)
+    inside = (row >= 0) & (row < grid.cells.shape[0]) & (col >= 0) & (col < grid.cells.shape[1])
+    return np.stack([row, col], 1), inside
+
+
+def path_cells(grid, origins: np.ndarray, radius: float = 2.0) -> np.ndarray:
+    """(row, col) of the grid cells whose centres lie within `radius` of the polyline of sensor positions."""
+    found = []
+    for a, b in zip(origins[:-1, :2], origins[1:, :2]):
+        lo, hi = np.minimum(a, b) - radius, np.maximum(a, b) + radius  # the segment's box: only its cells
+        c0, c1 = np.floor((np.array([lo, hi]) - grid.origin) / grid.resolution).astype(np.int64)  # (x, y) cells
+        rows, cols = np.meshgrid(np.arange(max(c0[1], 0), min(c1[1] + 1, grid.cells.shape[0])),
+                                 np.arange(max(c0[0], 0), min(c1[0] + 1, grid.cells.shape[1])), indexing="ij")
+        centres = np.stack([grid.origin[0] + (cols.ravel() + 0.5) * grid.resolution,
+                            grid.origin[1] + (rows.ravel() + 0.5) * grid.resolution], 1)
+        ab = b - a
+        t = np.clip(((centres - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        near = np.linalg.norm(centres - (a + t[:, None] * ab), axis=1) <= radius
+        found.append(np.stack([rows.ravel()[near], cols.ravel()[near]], 1))
+    return np.unique(np.concatenate(found), axis=0) if found else np.zeros((0, 2), np.int64)
+
+
+def _share(grid, cells: np.ndarray, state: int) -> float:
+    if len(cells) == 0:
+        return float("nan")
+    return round(100 * float((grid.cells[cells[:, 0], cells[:, 1]] == state).mean()), 2)
+
+
+def labelled_cells(grid, points: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(road cells, object cells) of the grid by the labelled points (world frame)."""
+    ground = np.isin(labels, GROUND_CLASSES)
+    road = np.isin(labels, ROAD_CLASSES)
+    objects = (labels >= 10) & (labels <= 99) & ~ground
+    # the labelled ground's height: the median of the ground points in each 1 m square
+    squares = np.floor(points[:, :2]).astype(np.int64)
+    key = squares[:, 0] << 32 | (squares[:, 1] & 0xFFFFFFFF)
+    order = np.argsort(key[ground], kind="stable")
+    gkey, gz = key[ground][order], points[ground, 2][order]
+    starts = np.flatnonzero(np.r_[True, gkey[1:] != gkey[:-1]])
+    medians = np.array([np.median(z) for z in np.split(gz, starts[1:])]) if len(gz) else np.zeros(0)
+    where = np.searchsorted(gkey[starts], key[objects]) if len(gz) else np.zeros(int(objects.sum()), np.int64)
+    where = np.minimum(where, max(len(starts) - 1, 0))
+    found = len(gz) > 0 and (gkey[starts][where] == key[objects])
+    under = np.where(found, medians[where] if len(gz) else np.nan, np.nan)
+    height = points[objects, 2] - under
+    standing = (height >= BAND[0]) & (height <= BAND[1])
+    obj_cells, inside = _cells(grid, points[objects][standing, :2])
+    obj_cells, counts = np.unique(obj_cells[inside], axis=0, return_counts=True)
+    obj_cells = obj_cells[counts >= 2]
+    any_object, inside_o = _cells(grid, points[objects, :2])
+    any_object = {tuple(c) for c in any_object[inside_o]}
+    road_cells, inside = _cells(grid, points[road, :2])
+    road_cells = np.unique(road_cells[inside], axis=0)
+    road_cells = np.array([c for c in road_cells if tuple(c) not in any_object]).reshape(-1, 2)
+    return road_cells, obj_cells
+
+
+def grid_of(source: Path, resolution: float, poses: str | None = None):
+    """The --above-ground grid of the source's map, the scans (world points) and the sensor positions."""
+    from voxtool.api import build_map
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.ground import project_above_ground
+    from voxtool.io.mapfile import load_map
+    from voxtool.sources import SourceOptions, open_source
+
+    options = SourceOptions(poses=poses)
+    out = OUT / f"grid_{source.name}.vxm"
+    OUT.mkdir(exist_ok=True)
+    build_map(source, options, MapParams(resolution=resolution), SensorModel(), "octree", out, False)
+    backend, _ = load_map(out)
+    t0 = time.perf_counter()
+    grid = project_above_ground(backend.leaves(), resolution, backend.sensor.threshold_log, BAND)
+    seconds = time.perf_counter() - t0
+    scans = list(open_source(source, options).scans)
+    return grid, scans, np.array([s.origin for s in scans], np.float64), seconds
+
+
+def grid_rows(kitti: Path, resolution: float, pcd: list[tuple[Path, str]]) -> list[dict]:
+    rows = []
+    for sequence in sorted(p for p in kitti.iterdir() if (p / "labels").is_dir()):
+        grid, scans, origins, seconds = grid_of(sequence, resolution)
+        labels = np.concatenate([np.fromfile(f, dtype="<u4") & 0xFFFF for f in sorted((sequence / "labels").glob("*.label"))])
+        points = np.concatenate([s.points for s in scans]).astype(np.float64)
+        assert len(points) == len(labels), "a scan lost points on reading: labels no longer line up"
+        road, objects = labelled_cells(grid, points, labels)
+        rows.append({"input": f"KITTI {sequence.name}", "road_cells": len(road), "road_free": _share(grid, road, 0),
+                     "object_cells": len(objects), "objects_occupied": _share(grid, objects, 100),
+                     "path_free": _share(grid, path_cells(grid, origins), 0), "ground_s": round(seconds, 3)})
+    for folder, poses in pcd:
+        grid, _, origins, seconds = grid_of(folder, resolution, poses)
+        rows.append({"input": folder.name, "road_cells": None, "road_free": None, "object_cells": None,
+                     "objects_occupied": None, "path_free": _share(grid, path_cells(grid, origins), 0),
+                     "ground_s": round(seconds, 3)})
+    return rows
+
+
 def patchwork_ground(sequence: Path) -> tuple[np.ndarray, float]:
     import pypatchworkpp
 
@@ -76,7 +188,23 @@ def main() -> None:
     ap.add_argument("--kitti", default=str(Path(__file__).resolve().parents[1] / ".fetched" / "mini_kitti" / "sequences"))
     ap.add_argument("--resolution", type=float, default=0.2)
     ap.add_argument("--band", type=float, default=0.3, help="map ground: metres from the ground that count as ground")
+    ap.add_argument("--pcd", nargs=2, action="append", default=[], metavar=("DIR", "POSES"),
+                    help="an unlabelled PCD dump and its pose file: its path-free share in the grid table")
+    ap.add_argument("--grid-only", action="store_true", help="only the grid table")
     args = ap.parse_args()
+    grid = grid_rows(Path(args.kitti), args.resolution, [(Path(d), p) for d, p in args.pcd])
+    print(f"{'input':<16} {'road cells':>10} {'road free %':>12} {'object cells':>13} {'objects occ. %':>15} "
+          f"{'path free %':>12} {'ground s':>9}")
+    for r in grid:
+        print(f"{r['input']:<16} {r['road_cells'] if r['road_cells'] is not None else '-':>10} "
+              f"{r['road_free'] if r['road_free'] is not None else '-':>12} "
+              f"{r['object_cells'] if r['object_cells'] is not None else '-':>13} "
+              f"{r['objects_occupied'] if r['objects_occupied'] is not None else '-':>15} {r['path_free']:>12} "
+              f"{r['ground_s']:>9}", flush=True)
+    OUT.mkdir(exist_ok=True)
+    (OUT / "ground_grid.json").write_text(json.dumps({"rows": grid, "args": vars(args)}, indent=2))
+    if args.grid_only:
+        return
     rows = []
     for sequence in sorted(p for p in Path(args.kitti).iterdir() if (p / "labels").is_dir()):
         labels = np.concatenate([np.fromfile(f, dtype="<u4") & 0xFFFF for f in sorted((sequence / "labels").glob("*.label"))])

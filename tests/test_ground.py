@@ -23,10 +23,6 @@ def ground_key(x: np.ndarray) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def terrain(tmp_path_factory):
-    from voxtool.config import MapParams, SensorModel
-    from voxtool.io.mapfile import save_map
-    from voxtool.maps.octree import OctreeMap
-
     xs, ys = np.meshgrid(np.arange(SIDE), np.arange(SIDE), indexing="ij")
     xs, ys = xs.ravel(), ys.ravel()
     box = np.zeros(xs.shape, bool)
@@ -39,13 +35,37 @@ def terrain(tmp_path_factory):
     for k in range(13, 18):
         keys.append(np.c_[xs[crown], ys[crown], ground_key(xs[crown]) + k])
     keys = np.concatenate(keys) + np.array([TREE_MAX_VAL, TREE_MAX_VAL, 0])
+    path = tmp_path_factory.mktemp("terrain") / "terrain.vxm"
+    save_occupied(keys, path)
+    return path, xs, ys, box, crown
+
+
+def save_occupied(keys: np.ndarray, path) -> None:
+    """A map whose occupied voxels are `keys` (N, 3) and nothing else, saved as a snapshot."""
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.io.mapfile import save_map
+    from voxtool.maps.octree import OctreeMap
+
     occupied = np.unique(morton_encode(keys.astype(np.uint16)))
     m = OctreeMap(MapParams(resolution=RES), SensorModel())
     m.load_state({"leaf_codes": occupied, "leaf_depths": np.full(occupied.shape[0], 16, np.uint8),
                   "leaf_values": np.full(occupied.shape[0], np.float32(2.0))})
-    path = tmp_path_factory.mktemp("terrain") / "terrain.vxm"
-    save_map(path, m, {"source": "generated terrain"})
-    return path, xs, ys, box, crown
+    save_map(path, m, {"source": "generated"})
+
+
+def test_a_road_across_a_voxel_boundary_is_free(tmp_path):
+    """Real roads straddle voxel boundaries: each column holds the floor voxel and the one above it
+    (KITTI: 0.2 m voxels, road points within 5 cm of a boundary). That upper voxel is still the
+    road, one layer over the floor, not an obstacle; a box 0.4-1.2 m over the road is one."""
+    xs, ys = (a.ravel() for a in np.meshgrid(np.arange(40), np.arange(40), indexing="ij"))
+    box = (xs >= 20) & (xs < 25) & (ys >= 20) & (ys < 25)
+    keys = [np.c_[xs, ys, np.full(xs.shape, TREE_MAX_VAL + k)] for k in (0, 1)]  # the road, two layers
+    keys += [np.c_[xs[box], ys[box], np.full(int(box.sum()), TREE_MAX_VAL + k)] for k in range(3, 7)]
+    save_occupied(np.concatenate(keys) + np.array([TREE_MAX_VAL, TREE_MAX_VAL, 0]), tmp_path / "road.vxm")
+    code, _, err = cli("export", tmp_path / "road.vxm", "-o", tmp_path / "g.pgm", "--above-ground", "0.3,2.0")
+    assert code == 0, err
+    cells = read_nav2_map(tmp_path / "g.yaml")[0]
+    assert np.array_equal(cells[ys, xs], np.where(box, 100, 0))
 
 
 def test_above_ground_grid_equals_the_terrain_truth(terrain, tmp_path):

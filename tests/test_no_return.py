@@ -75,3 +75,28 @@ def test_odometry_counts_them(scans_with_and_without, tmp_path):
     _, zeros, n = scans_with_and_without
     got = _json("odometry", zeros, "-o", tmp_path / "poses.txt")
     assert got["points_dropped_at_origin"] == n
+
+
+def test_the_vehicle_s_own_returns_go_with_ego_box(scans_with_and_without, tmp_path):
+    """Points on the vehicle (in the sensor's frame, whatever the pose) dropped by --ego-box and
+    counted apart: the map equals the map of the scans without them."""
+    plain, _, n = scans_with_and_without
+    body = tmp_path / "body"
+    shutil.copytree(plain, body)
+    rng = np.random.default_rng(3)
+    for f in sorted(body.glob("*.pcd")):
+        cloud = read_pcd(f)
+        hood = rng.uniform((0.5, -0.8, -0.9), (2.0, 0.8, -0.4), (40, 3)).astype(np.float32)
+        points = np.concatenate([cloud.xyz.astype(np.float32), hood])
+        f.write_bytes(pcd_header(len(points), False, viewpoint=cloud.viewpoint) + pcd_rows(points, None))
+    box = "0.4,-0.9,-1.0,2.1,0.9,-0.3"
+    a = _json("build", plain, "-o", tmp_path / "a.vxm", "--resolution", "0.1", "--ego-box", box)
+    b = _json("build", body, "-o", tmp_path / "b.vxm", "--resolution", "0.1", "--ego-box", box)
+    assert a["points_dropped_ego_box"] == 0 and b["points_dropped_ego_box"] == b["points_dropped"] == 40 * n
+    la, lb = load_map(tmp_path / "a.vxm")[0].leaves(), load_map(tmp_path / "b.vxm")[0].leaves()
+    assert np.array_equal(la.codes, lb.codes) and np.array_equal(la.values, lb.values)
+    c = _json("build", body, "-o", tmp_path / "c.vxm", "--resolution", "0.1")
+    assert c["points_dropped"] == 0  # without the box they are points like any other
+    code, _, err = cli("build", body, "-o", tmp_path / "d.vxm", "--ego-box", "1,2,3")
+    assert code == 2 and err.strip().splitlines()[-1].startswith("voxtool: error: --ego-box 1,2,3: give six numbers")
+    assert not (tmp_path / "d.vxm").exists()

@@ -30,7 +30,7 @@ from voxtool.sources.scan import add_drop_counts
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 COUNTERS = ("scans", "points", "points_dropped", "points_dropped_nonfinite", "points_dropped_at_origin",
-            "points_dropped_min_range", "raw_bytes",
+            "points_dropped_ego_box", "points_dropped_min_range", "raw_bytes",
             "voxel_updates", "ray_steps", "rays", "merged_rays")
 
 

@@ -233,7 +233,10 @@ def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float
     keys = occupied_keys(leaves, threshold_log)
     ground = ground_of(keys, resolution, params)
     cells = np.where(np.isnan(ground.height), UNKNOWN, FREE).astype(np.int8)
-    above = (keys[:, 2] - TREE_MAX_VAL + 0.5) * resolution - ground.under(keys[:, 0], keys[:, 1])
+    # a voxel's height above the ground: its bottom face above the floor voxel's (the ground's height),
+    # so whole voxel layers over the floor; a road that straddles a voxel boundary fills the floor
+    # voxel and the one above it, and that one, at a layer, is still the road and not 0.3 m above it
+    above = (keys[:, 2] - TREE_MAX_VAL) * resolution - ground.under(keys[:, 0], keys[:, 1])
     inside = (above >= band[0]) & (above <= band[1])  # NaN (no ground) is in no band
     cells[keys[inside, 1] - ground.y0, keys[inside, 0] - ground.x0] = OCCUPIED
     origin = ((ground.x0 - TREE_MAX_VAL) * resolution, (ground.y0 - TREE_MAX_VAL) * resolution)

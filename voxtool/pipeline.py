@@ -22,6 +22,7 @@ class BuildReport:
     points_dropped: int = 0
     points_dropped_nonfinite: int = 0
     points_dropped_at_origin: int = 0
+    points_dropped_ego_box: int = 0
     points_dropped_min_range: int = 0
     no_returns: int = 0  # beams that saw nothing (LaserScan range_max / +Inf): free space only
     raw_bytes: int = 0
@@ -57,6 +58,7 @@ class BuildReport:
             "points_dropped": self.points_dropped,
             "points_dropped_nonfinite": self.points_dropped_nonfinite,
             "points_dropped_at_origin": self.points_dropped_at_origin,
+            "points_dropped_ego_box": self.points_dropped_ego_box,
             "points_dropped_min_range": self.points_dropped_min_range,
             "no_returns": self.no_returns,
             "scans_unposed": self.scans_unposed,

@@ -204,10 +204,33 @@ def summary_rows(stats: dict) -> list[tuple[str, str]]:
     return rows
 
 
+def parse_box(text: str | None, option: str, frame: str = "") -> tuple[float, ...] | None:
+    """OPTION XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX as six numbers (metres); None when not given."""
+    from voxtool.errors import ParameterError
+
+    if text is None:
+        return None
+    try:
+        box = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        box = ()
+    if len(box) != 6:
+        raise ParameterError(f"{option} {text}: give six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres{' ' + frame if frame else ''})")
+    return box
+
+
+def ego_box_option():
+    return click.option("--ego-box", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
+                        help="Drop the points inside this box of the sensor's frame (metres): the vehicle's own body, "
+                             "whose returns would leave a trail of obstacles along the path. Counted apart "
+                             "(points_dropped_ego_box in --json).")
+
+
 def _source_option_list() -> list:
     """How a source is read: poses, frames, topics, the scan slice, the near-range cut."""
     return [
         click.option("--min-range", default=0.0, show_default=True, type=float, help="Drop points closer than this to the sensor."),
+        ego_box_option(),
         click.option("--poses", type=click.Path(path_type=Path), help="Pose file (TUM, index+TUM or KITTI), one row per scan file, or per scan message of a ROS log "
                      "(instead of its /tf; `voxtool odometry` writes one)."),
         click.option("--no-viewpoint", is_flag=True,
@@ -261,7 +284,8 @@ def source_setup(kw: dict):
     options = SourceOptions(poses=str(poses) if poses else None, no_viewpoint=kw.pop("no_viewpoint"),
                             topic=kw.pop("topic"), world_frame=kw.pop("world_frame"), pose_topic=kw.pop("pose_topic"),
                             start=kw.pop("start"), stop=kw.pop("stop"), every=kw.pop("every"),
-                            min_range=kw.pop("min_range"), bad_scans=kw.pop("bad_scans"))
+                            min_range=kw.pop("min_range"), bad_scans=kw.pop("bad_scans"),
+                            ego_box=parse_box(kw.pop("ego_box"), "--ego-box", "in the sensor's frame"))
     return with_origin(options, kw.pop("origin", None))  # commands with origin_option among their **kw
 
 

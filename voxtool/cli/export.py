@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors, origin_option, source_options, source_setup
+from voxtool.cli.common import emit, handle_errors, origin_option, parse_box, source_options, source_setup
 
 
 @click.command()
@@ -63,14 +63,7 @@ def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_ran
     if options.origin is not None:
         raise ParameterError("--origin is for scans exported as .graph: a map keeps the origin it was built about")
 
-    box = None
-    if crop is not None:
-        try:
-            box = tuple(float(v) for v in crop.split(","))
-        except ValueError:
-            raise ParameterError(f"--crop {crop}: give six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres)") from None
-        if len(box) != 6:
-            raise ParameterError(f"--crop {crop}: give six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres)")
+    box = parse_box(crop, "--crop")
     from voxtool.grid import parse_z_range
     from voxtool.ground import parse_above_ground
 

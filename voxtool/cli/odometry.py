@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import dropped_text, emit, handle_errors, resolve_source
+from voxtool.cli.common import dropped_text, ego_box_option, emit, handle_errors, parse_box, resolve_source
 
 
 @click.command("odometry")
@@ -21,12 +21,13 @@ from voxtool.cli.common import dropped_text, emit, handle_errors, resolve_source
 @click.option("--voxel-size", default=None, type=float,
               help="KISS-ICP's local map voxel in metres (default: max range / 100, its own default).")
 @click.option("--topic", help="MCAP/bag PointCloud2 topic (default: the only one).")
+@ego_box_option()
 @click.option("--bad-scans", type=click.Choice(["fail", "skip"]), default="fail", show_default=True,
               help="skip: read a truncated bag record by record (every scan file must still be readable).")
 @click.option("--json", "as_json", is_flag=True, help="Print figures and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def odometry(source, sample, output, max_range, min_range, voxel_size, topic, bad_scans, as_json, progress):
+def odometry(source, sample, output, max_range, min_range, voxel_size, topic, ego_box, bad_scans, as_json, progress):
     """Estimate the sensor's pose for every scan of SOURCE by LiDAR odometry (KISS-ICP), and write
     them as a pose file that `build`, `clean` and `eval` take with --poses.
 
@@ -47,7 +48,9 @@ def odometry(source, sample, output, max_range, min_range, voxel_size, topic, ba
 
     check_writable(output)
     params = OdometryParams(max_range=max_range, min_range=min_range, voxel_size=voxel_size)
-    result = estimate_poses(source, SourceOptions(topic=topic, bad_scans=bad_scans), params, progress)
+    result = estimate_poses(source, SourceOptions(topic=topic, bad_scans=bad_scans,
+                                                 ego_box=parse_box(ego_box, "--ego-box", "in the sensor's frame")),
+                            params, progress)
     kind = write_pose_file(output, result["poses"], result["stamps_ns"])
     figures = {**result["figures"], "format": kind}
     t = figures["timings_s"]

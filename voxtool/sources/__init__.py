@@ -40,12 +40,20 @@ class SourceOptions:
     truth: str | None = None
     # the points in the sensor's own frame, every pose the identity: what odometry registers
     sensor_frame: bool = False
+    # (xmin, ymin, zmin, xmax, ymax, zmax) in the sensor's frame, metres: the vehicle's own body, whose
+    # returns are dropped (PCL's CropBox, negative); they would leave a trail of obstacles along the path
+    ego_box: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.bad_scans not in BAD_SCAN_POLICIES:
             raise ParameterError(f"--bad-scans {self.bad_scans!r}: one of {', '.join(BAD_SCAN_POLICIES)}")
         if self.start < 0 or (self.stop is not None and self.stop < self.start) or self.every < 1:
             raise ParameterError(f"scan slice start={self.start} stop={self.stop} every={self.every} is invalid")
+        if self.ego_box is not None:
+            box = np.asarray(self.ego_box, dtype=np.float64)
+            if box.shape != (6,) or not np.all(np.isfinite(box)) or np.any(box[:3] > box[3:]):
+                raise ParameterError(f"--ego-box {','.join(f'{v:g}' for v in np.ravel(box))}: give xmin,ymin,zmin,"
+                                     "xmax,ymax,zmax in metres in the sensor's frame, each min at most its max")
 
 
 class BadScans:
@@ -120,8 +128,10 @@ def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source:
     # in organized clouds, and one such point per scan marks the sensor's own voxel as a hit
     sensor = pose.translation.astype(points.dtype) if world_frame_points else np.zeros(3, points.dtype)
     at_origin = finite & (points == sensor).all(axis=1)
-    kept = points[finite & ~at_origin]
-    extra = {name: values[finite & ~at_origin] for name, values in (per_point or {}).items()}
+    on_vehicle = _in_ego_box(points, pose, world_frame_points, options.ego_box) & finite & ~at_origin
+    keep = finite & ~at_origin & ~on_vehicle
+    kept = points[keep]
+    extra = {name: values[keep] for name, values in (per_point or {}).items()}
     if options.origin is not None:
         if isinstance(options.origin, str):
             raise ParameterError(f"--origin {options.origin} was not resolved (resolve_origin) before reading {source}")
@@ -151,12 +161,25 @@ def make_scan(points: np.ndarray, pose: Pose, index: int, stamp_ns: int, source:
         points_read=int(points.shape[0]),
         dropped_nonfinite=int((~finite).sum()) - (0 if miss_points is None else int(miss_points.shape[0])),
         dropped_at_origin=int(at_origin.sum()),
+        dropped_ego_box=int(on_vehicle.sum()),
         dropped_min_range=dropped_min,
         raw_bytes=raw_bytes,
         misses=None if miss_points is None else np.ascontiguousarray(miss_points, dtype=np.float32),
         miss_range=float(miss_range),
         extra=extra,
     )
+
+
+def _in_ego_box(points: np.ndarray, pose: Pose, world_frame_points: bool, box) -> np.ndarray:
+    """Which points lie in the vehicle's box (sensor frame, inclusive); none without a box."""
+    if box is None or points.shape[0] == 0:
+        return np.zeros(points.shape[0], bool)
+    local = np.asarray(points, dtype=np.float64)
+    if world_frame_points:
+        local = (local - pose.translation) @ pose.rotation  # R^T (p - t), row by row
+    lo, hi = np.asarray(box[:3]), np.asarray(box[3:])
+    with np.errstate(invalid="ignore"):  # NaN points: in no box
+        return ((local >= lo) & (local <= hi)).all(axis=1)
 
 
 def _pose_rows(options: SourceOptions, n_scans: int | None, scans: str = "scans") -> list | None:

@@ -19,6 +19,7 @@ class Scan:
     points_read: int = 0  # points in the file before filtering
     dropped_nonfinite: int = 0
     dropped_at_origin: int = 0  # exactly at the sensor's own position: a driver's "no return", not a surface
+    dropped_ego_box: int = 0  # the vehicle's own body (--ego-box)
     dropped_min_range: int = 0
     raw_bytes: int = 0  # bytes of sensor data this scan came from (bandwidth accounting)
     # beams that saw nothing (a LaserScan's range_max / +Inf readings): world-frame points beyond
@@ -33,17 +34,19 @@ class Scan:
 
     @property
     def points_dropped(self) -> int:
-        return self.dropped_nonfinite + self.dropped_at_origin + self.dropped_min_range
+        return self.dropped_nonfinite + self.dropped_at_origin + self.dropped_ego_box + self.dropped_min_range
 
     def drop_counts(self) -> dict[str, int]:
         """The points dropped on reading, in total and by reason, as every command's --json counts them."""
         return {"points_dropped": self.points_dropped, "points_dropped_nonfinite": self.dropped_nonfinite,
-                "points_dropped_at_origin": self.dropped_at_origin, "points_dropped_min_range": self.dropped_min_range}
+                "points_dropped_at_origin": self.dropped_at_origin, "points_dropped_ego_box": self.dropped_ego_box,
+                "points_dropped_min_range": self.dropped_min_range}
 
 
 # why points were dropped on reading, as the summaries say it (keys of Scan.drop_counts)
 DROP_REASONS = {"points_dropped_nonfinite": "not finite (NaN/Inf) or below a LaserScan's range_min",
                 "points_dropped_at_origin": "at the sensor's own position (a driver's \"no return\")",
+                "points_dropped_ego_box": "on the vehicle (--ego-box)",
                 "points_dropped_min_range": "nearer than --min-range"}
 
 
