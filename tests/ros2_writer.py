@@ -79,7 +79,7 @@ def odom_msg(ns: int, t, q_wxyz) -> dict:
 
 
 def write_mcap(path, scans, mode: str = "tf", cloud_overrides: dict | None = None, skip_tf: bool = False,
-               stamps_descending: bool = False, chunk_size: int = 1 << 20,
+               chunk_size: int = 1 << 20,
                cloud_log_times: list[int] | None = None) -> None:
     """scans: [(sensor points, origin, q_wxyz)]. mode 'tf': map->odom (identity) ->lidar chain;
     'odom': an Odometry topic /odom gives the lidar pose; 'pose': a PoseStamped topic /pose.
@@ -94,8 +94,7 @@ def write_mcap(path, scans, mode: str = "tf", cloud_overrides: dict | None = Non
         s_pose = w.register_msgdef("geometry_msgs/msg/PoseStamped", POSESTAMPED)
         for i, (pts, origin, q) in enumerate(scans):
             ns = 1_000_000_000 + i * 100_000_000
-            # header stamps going backwards while log times go forwards: a broken /tf
-            tf_ns = 1_000_000_000 + (len(scans) - i) * 100_000_000 if stamps_descending else ns
+            tf_ns = ns
             if mode == "tf" and not skip_tf:
                 w.write_message("/tf", s_tf, tf_msg("map", "odom", tf_ns, (0, 0, 0), (1, 0, 0, 0)), ns, ns)
                 w.write_message("/tf", s_tf, tf_msg("odom", "lidar", tf_ns, origin, q), ns, ns)

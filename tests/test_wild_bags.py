@@ -107,9 +107,12 @@ def _legacy_store():
 
 
 def write_wild_bag(path, scans, *, tf: str = "tf", tf_from: int = 0, scan_frame: str = "lidar",
-                   tf_child: str = "lidar", static_only: bool = False, odom: bool = False, chunk: int = 1 << 20):
-    """A ROS 1 bag of PointCloud2 scans at 10 Hz: tf "tf" (tf2), "legacy" (tf/tfMessage) or
-    "none"; transforms from scan `tf_from` on (scans before it precede the first transform);
+                   tf_child: str = "lidar", static_only: bool = False, odom: bool = False, chunk: int = 1 << 20,
+                   late_stamps: bool = False):
+    """A ROS 1 bag of PointCloud2 scans at 10 Hz: tf "tf" (tf2), "legacy" (tf/tfMessage), "mixed"
+    (both, on two connections of /tf, scan by scan in turn, as a bag of several nodes has them) or
+    "none"; `late_stamps`: every transform also sent again 0.2 s late (out of order) and once
+    more with its own stamp (repeated), as several publishers of one edge give; transforms from scan `tf_from` on (scans before it precede the first transform);
     `static_only`: one /tf_static message holds the sensor pose; `odom`: an Odometry topic too;
     chunks of about `chunk` bytes (ROS's recorder: 768 KiB)."""
     from bag_writer import _odometry
@@ -124,6 +127,7 @@ def write_wild_bag(path, scans, *, tf: str = "tf", tf_from: int = 0, scan_frame:
         c_scan = writer.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=store)
         c_tf = writer.add_connection("/tf_static" if static_only else "/tf", tf_type, typestore=store) \
             if tf != "none" else None
+        c_legacy = writer.add_connection("/tf", LEGACY_TF, typestore=store) if tf == "mixed" else None
         c_odom = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=store) if odom else None
         for i, (pts, origin, q) in enumerate(scans):
             ns = 1_000_000_000 + i * 100_000_000
@@ -131,7 +135,18 @@ def write_wild_bag(path, scans, *, tf: str = "tf", tf_from: int = 0, scan_frame:
                 msg = _transform(T, "ros1", "odom", tf_child, ns, origin, q)
                 if tf == "legacy":
                     msg = T[LEGACY_TF](transforms=msg.transforms)
-                writer.write(c_tf, ns, store.serialize_ros1(msg, tf_type))
+                if tf == "mixed" and i % 2:
+                    writer.write(c_legacy, ns, store.serialize_ros1(T[LEGACY_TF](transforms=msg.transforms), LEGACY_TF))
+                else:
+                    writer.write(c_tf, ns, store.serialize_ros1(msg, tf_type))
+                if late_stamps and i >= 2:  # scan i-2's transform again, now: a stamp older than the last
+                    p, o, qq = scans[i - 2]
+                    old = _transform(T, "ros1", "odom", tf_child, ns - 200_000_000, o, qq)
+                    writer.write(c_tf, ns, store.serialize_ros1(old, tf_type))
+                if late_stamps:
+                    writer.write(c_tf, ns, store.serialize_ros1(msg if tf != "legacy" else
+                                                                _transform(T, "ros1", "odom", tf_child, ns, origin, q),
+                                                                tf_type))
             if c_odom is not None:
                 writer.write(c_odom, ns, store.serialize_ros1(_odometry(T, "ros1", ns, origin, q), "nav_msgs/msg/Odometry"))
             writer.write(c_scan, ns + 50_000_000 * (i < tf_from),
@@ -163,6 +178,27 @@ def test_legacy_tf_poses_as_tf2(tmp_path, scans):
     assert ra["scans"] == rb["scans"] == len(scans)
     la, lb = ma.leaves(), mb.leaves()
     assert np.array_equal(la.codes, lb.codes) and np.array_equal(la.values, lb.values)
+
+
+@pytest.mark.parametrize("case", ["mixed", "late"])
+def test_tf_as_tf2_reads_it(tmp_path, scans, case):
+    """/tf on connections of both tf/tfMessage and tf2_msgs/TFMessage, and transforms stamped out
+    of order or twice (several publishers of one edge): tf2 keeps each edge's buffer sorted by
+    stamp, and so does voxtool: the same map as the clean tf2 bag's, and info names the tree."""
+    a = write_wild_bag(tmp_path / "tf2.bag", scans)
+    b = write_wild_bag(tmp_path / f"{case}.bag", scans, tf="mixed" if case == "mixed" else "tf",
+                       late_stamps=case == "late")
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    ra, ma, _ = _map_of(tmp_path / "a", a)
+    rb, mb, _ = _map_of(tmp_path / "b", b)
+    assert ra["scans"] == rb["scans"] == len(scans)
+    la, lb = ma.leaves(), mb.leaves()
+    assert np.array_equal(la.codes, lb.codes) and np.array_equal(la.values, lb.values)
+    code, text, err = cli("info", b, "--json")
+    assert code == 0, err
+    got = json.loads(text)
+    assert [(e["parent"], e["child"]) for e in got["tf"]] == [("odom", "lidar")]
 
 
 def test_scans_before_the_first_transform_are_left_out_counted_and_warned(tmp_path, scans):

@@ -84,13 +84,13 @@ def pose_case(text: str, n_scans=2):
     return make
 
 
-def mcap_case(overrides=None, skip_tf=False, extra=(), mutate=None, tf_backwards=False):
+def mcap_case(overrides=None, skip_tf=False, extra=(), mutate=None):
     def make(tmp):
         from ros2_writer import write_mcap
 
         scans = [(p, o, yaw_quat(y)) for p, o, y in box_scene(3, 30, seed=1)]
         path = tmp / "in.mcap"
-        write_mcap(path, scans, cloud_overrides=overrides, skip_tf=skip_tf, stamps_descending=tf_backwards)
+        write_mcap(path, scans, cloud_overrides=overrides, skip_tf=skip_tf)
         if mutate:
             path.write_bytes(mutate(path.read_bytes()))
         return build(tmp, path, *extra)
@@ -291,7 +291,6 @@ CASES = [
     ("mcap field beyond point_step", mcap_case(overrides={"fields": [{"name": "x", "offset": 0, "datatype": 7, "count": 1}, {"name": "y", "offset": 4, "datatype": 7, "count": 1}, {"name": "z", "offset": 10, "datatype": 7, "count": 1}]}), 3, "field 'z' at offset 10 does not fit point_step 12"),
     ("mcap cloud without z", mcap_case(overrides={"fields": [{"name": "x", "offset": 0, "datatype": 7, "count": 1}, {"name": "y", "offset": 4, "datatype": 7, "count": 1}]}), 3, "has no 'z' field"),
     ("mcap unknown datatype", mcap_case(overrides={"fields": [{"name": "x", "offset": 0, "datatype": 9, "count": 1}, {"name": "y", "offset": 4, "datatype": 7, "count": 1}, {"name": "z", "offset": 8, "datatype": 7, "count": 1}]}), 3, "field 'x' has unknown datatype 9"),
-    ("mcap transforms go backwards", mcap_case(tf_backwards=True), 3, "stamps go backwards"),
     ("mcap missing pose topic", mcap_case(extra=("--pose-topic", "/odom")), 3, "pose topic '/odom' is not Odometry or PoseStamped"),
     # --- ScanGraph -----------------------------------------------------------------------
     ("graph truncated points", graph_case(lambda b: b[:500]), 3, "declares 30 points, beyond the file or the limit"),

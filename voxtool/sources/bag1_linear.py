@@ -218,7 +218,10 @@ class LinearBag:
 
     @property
     def topics(self) -> dict[str, str]:
-        return {c.topic: c.msgtype for c in self.connections.values()}
+        from voxtool.sources.tf import topic_type
+
+        names = dict.fromkeys(c.topic for c in self.connections.values())  # in connection order
+        return {name: topic_type(c.msgtype for c in self.connections.values() if c.topic == name) for name in names}
 
     def messages(self, topics: list[str]) -> Iterator[tuple[Connection, int, memoryview]]:
         wanted = set(topics)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from voxtool.errors import SourceError
 from voxtool.sources.ros_msgs import scan_messages, scan_topic
-from voxtool.sources.tf import POSE_TYPES, SensorFrame, SensorPoses, tf_topics
+from voxtool.sources.tf import POSE_TYPES, SensorFrame, SensorPoses, tf_topics, topic_type
 
 
 def bag_errors() -> tuple:
@@ -161,7 +161,8 @@ class _IndexedBag:
     def __init__(self, reader, patched=None) -> None:
         self._reader = reader
         self._patched = patched  # the folder of a ros2_blanks_filled() copy, removed on close
-        self.topics = {name: info.msgtype or "" for name, info in reader.topics.items()}
+        self.topics = {name: info.msgtype or topic_type(c.msgtype for c in reader.connections if c.topic == name)
+                       for name, info in reader.topics.items()}
 
     def count(self, topic: str) -> int | None:
         return self._reader.topics[topic].msgcount

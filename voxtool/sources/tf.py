@@ -37,6 +37,16 @@ def tf_topics(topics: dict[str, str]) -> list[str]:
     return [t for t, s in topics.items() if s in TF_TYPES]
 
 
+def topic_type(types) -> str:
+    """The message type of a topic recorded on connections of `types`: the one type, or TF where
+    /tf came as both tf/tfMessage and tf2_msgs/TFMessage (the same fields; bags of several nodes of
+    both eras hold both); "" where the types differ otherwise."""
+    types = set(types)
+    if len(types) == 1:
+        return types.pop() or ""
+    return TF if types and types <= set(TF_TYPES) else ""
+
+
 def pose_hint(where: str, frame: str, topics: dict[str, str]) -> str:
     """What would pose a log's scans when its /tf cannot: its Odometry / PoseStamped topics (for
     --pose-topic), a static sensor's own frame (--world-frame), or LiDAR odometry's poses."""
@@ -65,15 +75,31 @@ class StampedPoses:
         self.poses: list[Pose] = []
         self.static = False
         self._sorted: np.ndarray | None = None  # the stamps as an array, made on the first lookup
+        self._in_order = True  # stamps ascending, none repeated
 
     def add(self, stamp: int, pose: Pose) -> None:
+        """Any stamp, in any order (as tf2's buffer takes them: several publishers of one edge,
+        a late message): the series is put in stamp order on the next lookup."""
+        if self.stamps and stamp <= self.stamps[-1]:
+            self._in_order = False
         self.stamps.append(stamp)
         self.poses.append(pose)
         self._sorted = None
 
+    def _order(self) -> None:
+        """Sort by stamp; of repeated stamps the pose added last stays (the stable sort puts it last)."""
+        order = np.argsort(np.asarray(self.stamps, dtype=np.int64), kind="stable")
+        stamps = [self.stamps[i] for i in order]
+        last = [k for k in range(len(stamps)) if k + 1 == len(stamps) or stamps[k + 1] != stamps[k]]
+        self.stamps = [stamps[k] for k in last]
+        self.poses = [self.poses[order[k]] for k in last]
+        self._in_order = True
+
     def at(self, stamp: int) -> Pose | None:
         if self.static:
             return self.poses[-1]
+        if not self._in_order:
+            self._order()
         s = self.stamps
         if self._sorted is None:
             self._sorted = np.asarray(s, dtype=np.int64)
@@ -115,8 +141,6 @@ class SensorPoses:
             series = self.edges.setdefault(key, StampedPoses())
             series.static = static
             stamp = header_stamp(tr.header)
-            if series.stamps and stamp < series.stamps[-1]:
-                raise SourceError(f"{self.where}: transform {key[0]} -> {key[1]} stamps go backwards at {stamp} ns")
             series.add(stamp, _pose_of(tr.transform.translation, tr.transform.rotation))
 
     def add_pose(self, msg) -> None:
