@@ -108,10 +108,11 @@ def _legacy_store():
 
 def write_wild_bag(path, scans, *, tf: str = "tf", tf_from: int = 0, scan_frame: str = "lidar",
                    tf_child: str = "lidar", static_only: bool = False, odom: bool = False, chunk: int = 1 << 20,
-                   late_stamps: bool = False):
+                   late_stamps: bool = False, odom_from: int = 0, odom_stamp_ns: int | None = None):
     """A ROS 1 bag of PointCloud2 scans at 10 Hz: tf "tf" (tf2), "legacy" (tf/tfMessage), "mixed"
     (both, on two connections of /tf, scan by scan in turn, as a bag of several nodes has them) or
-    "none"; `late_stamps`: every transform also sent again 0.2 s late (out of order) and once
+    "none"; `odom_from`: the Odometry topic from that scan on; `odom_stamp_ns`: its stamps start
+    there instead of at the scans' (a simulator's clock beside the sensor's); `late_stamps`: every transform also sent again 0.2 s late (out of order) and once
     more with its own stamp (repeated), as several publishers of one edge give; transforms from scan `tf_from` on (scans before it precede the first transform);
     `static_only`: one /tf_static message holds the sensor pose; `odom`: an Odometry topic too;
     chunks of about `chunk` bytes (ROS's recorder: 768 KiB)."""
@@ -147,8 +148,9 @@ def write_wild_bag(path, scans, *, tf: str = "tf", tf_from: int = 0, scan_frame:
                     writer.write(c_tf, ns, store.serialize_ros1(msg if tf != "legacy" else
                                                                 _transform(T, "ros1", "odom", tf_child, ns, origin, q),
                                                                 tf_type))
-            if c_odom is not None:
-                writer.write(c_odom, ns, store.serialize_ros1(_odometry(T, "ros1", ns, origin, q), "nav_msgs/msg/Odometry"))
+            if c_odom is not None and i >= odom_from:
+                stamp = ns if odom_stamp_ns is None else odom_stamp_ns + i * 100_000_000
+                writer.write(c_odom, ns, store.serialize_ros1(_odometry(T, "ros1", stamp, origin, q), "nav_msgs/msg/Odometry"))
             writer.write(c_scan, ns + 50_000_000 * (i < tf_from),
                          store.serialize_ros1(cloud(T, "ros1", pts, ns, scan_frame), "sensor_msgs/msg/PointCloud2"))
     return path
@@ -199,6 +201,25 @@ def test_tf_as_tf2_reads_it(tmp_path, scans, case):
     assert code == 0, err
     got = json.loads(text)
     assert [(e["parent"], e["child"]) for e in got["tf"]] == [("odom", "lidar")]
+
+
+def test_a_pose_topic_on_another_clock_poses_nothing_and_says_so(tmp_path, scans):
+    """Pose stamps that miss every scan (a simulator's 60 s beside the sensor's 1 s): exit 3 naming
+    both spans, no map written; not exit 0 with an empty map."""
+    path = write_wild_bag(tmp_path / "b.bag", scans, tf="none", odom=True, odom_stamp_ns=60_000_000_000)
+    code, _, err, out = _build(tmp_path, path, "--pose-topic", "/odom")
+    assert code == 3 and not out.exists()
+    assert (f"none of its {len(scans)} scans on '/points' can be posed: they span 1.000..1.500 s, the pose topic "
+            "'/odom' 60.000..60.500 s") in _one_error_line(err), err
+
+
+def test_scans_before_a_pose_topic_s_first_pose_are_left_out_and_said_so(tmp_path, scans):
+    path = write_wild_bag(tmp_path / "b.bag", scans, tf="none", odom=True, odom_from=2)
+    code, report, err, _ = _build(tmp_path, path, "--pose-topic", "/odom")
+    assert code == 0 and report["scans"] == len(scans) - 2 and report["scans_unposed"] == 2
+    assert [ln for ln in err.splitlines() if "left out" in ln] == [
+        f"voxtool: warning: {path}: left out 2 scans (0, 1) taken before the first pose of '/odom' that poses them "
+        "(topic '/points')"]
 
 
 def test_scans_before_the_first_transform_are_left_out_counted_and_warned(tmp_path, scans):

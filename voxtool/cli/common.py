@@ -186,7 +186,8 @@ def summary_rows(stats: dict) -> list[tuple[str, str]]:
             dropped += f"; {stats['no_returns']:,} no-return beams cleared free space only"
         rows += [("scans", f"{stats['scans']:,}"), ("points", f"{stats['points']:,} ({dropped})")]
         if stats.get("scans_unposed"):
-            rows.append(("scans left out", f"{stats['scans_unposed']:,} before the first transform or after the last"))
+            rows.append(("scans left out", f"{stats['scans_unposed']:,} with no pose at their time (before the first "
+                                           "transform or pose, or after the last)"))
     if "workers" in stats:
         rows.append(("dask", f"{stats['workers']} workers, {stats['partitions']} partitions, {stats['batches']} batches "
                              f"of scans: {stats['timings_s']['total']:.3f} s (ray casting summed over tasks "

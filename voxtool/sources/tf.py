@@ -22,9 +22,15 @@ class OutsideTransforms(SourceError):
     """A scan taken before the first transform that poses it (or after the last): a tf message
     filter drops such scans, and so do the log readers (counted and warned about once)."""
 
-    def __init__(self, message: str, before: bool) -> None:
+    def __init__(self, message: str, before: bool, span: tuple[int, int], pose_topic: str | None = None) -> None:
         super().__init__(message)
         self.before = before
+        self.span = span  # the stamps (ns) the poses that were missing span
+        self.pose_topic = pose_topic  # None: /tf's transforms
+
+    @property
+    def what(self) -> str:
+        return "transform" if self.pose_topic is None else f"pose of '{self.pose_topic}'"
 
 
 class NoPoseSource(SourceError):
@@ -160,7 +166,8 @@ class SensorPoses:
             if pose is None:
                 s = self.sensor.stamps
                 raise OutsideTransforms(f"{self.where}: pose topic '{self.pose_topic}' has no pose at {stamp} ns "
-                                        f"(its poses span {s[0]}..{s[-1]})", stamp < s[0])
+                                        f"(its poses span {s[0]}..{s[-1]})", stamp < s[0], (s[0], s[-1]),
+                                        self.pose_topic)
             return pose
         return self._chain(frame.lstrip("/"), stamp)
 
@@ -215,7 +222,7 @@ class SensorPoses:
                 s = self.edges[edge].stamps
                 raise OutsideTransforms(
                     f"{self.where}: transform {edge[0]} -> {edge[1]} has no value at {stamp} ns (known {s[0]}..{s[-1]})",
-                    stamp < s[0])
+                    stamp < s[0], (s[0], s[-1]))
             if not forward:
                 r = p.rotation.T
                 p = Pose(r, -r @ p.translation)
