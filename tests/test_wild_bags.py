@@ -340,7 +340,8 @@ def test_the_summary_says_why_points_were_dropped_and_which_scans_were_left_out(
     assert code == 0, err
     points = next(ln for ln in text.splitlines() if ln.startswith("points "))
     assert f"({3 * (len(scans) - 1)} dropped: {3 * (len(scans) - 1)} not finite" in points, points
-    assert "scans left out      1 before the first transform or after the last" in text, text
+    assert "scans left out      1 with no pose at their time (before the first transform or pose, or after the last)" \
+        in text, text
 
 
 def test_the_docs_way_to_write_a_ros1_bag_builds(tmp_path, monkeypatch):
