@@ -112,3 +112,18 @@ def test_bad_z_range_is_one_line(sample_map, tmp_path):
     code, _, err = cli("export", path, "-o", tmp_path / "g.ply", "--z-range", "0,1")
     assert code == 2 and "--z-range is for the 2D grid" in err
     assert not (tmp_path / "g.pgm").exists() and not (tmp_path / "g.yaml").exists()
+
+
+def test_the_yaml_origin_is_written_as_people_write_it():
+    """key * resolution gives -3.4000000000000004; the .yaml says -3.4 (the same within 1e-9 m)."""
+    from voxtool.grid import Grid2D, map_yaml
+
+    grid = Grid2D(np.zeros((2, 2), np.int8), 0.2, (-17 * 0.2, 3 * 0.1), None)
+    assert grid.origin == (-3.4000000000000004, 0.30000000000000004)
+    assert "origin: [-3.4, 0.3, 0.0]\n" in map_yaml(grid, "g.pgm")
+    assert "origin: [96.6, 5.3, 0.0]\n" in map_yaml(grid, "g.pgm", local_origin=(100.0, 5.0, 0.0))
+
+
+def test_build_without_output_says_the_map_was_not_written(tmp_path):
+    code, _, err = cli("build", "--sample", "--no-progress")
+    assert code == 0 and "no -o given: the map was built and measured, not written" in err

@@ -132,8 +132,9 @@ def map_yaml(grid: Grid2D, image_name: str, local_origin=None) -> str:
     says so)."""
     x, y = grid.origin
     note = ""
+    x, y = round(x, 9), round(y, 9)  # key * resolution: -1.7, not -1.7000000000000002
     if local_origin is not None and any(local_origin):
-        x, y = x + float(local_origin[0]), y + float(local_origin[1])
+        x, y = round(x + float(local_origin[0]), 9), round(y + float(local_origin[1]), 9)
         note = (f"# voxtool: the map was built about the local origin {list(map(float, local_origin))} "
                 "(--origin); this origin is in the scans' frame\n")
     return (f"{note}image: {image_name}\nmode: trinary\nresolution: {grid.resolution!r}\n"

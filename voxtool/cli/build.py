@@ -137,4 +137,6 @@ def build(sources, sample, output, origin, decay, share, ring, workers, schedule
         result.update(write_plot(build_figure(result, source_names(sources)[0]), plot))
         del result["per_scan"]
         rows.append(("plot", str(plot)))
+    if output is None:  # measured only: say so, or a forgotten -o looks like a map written somewhere
+        click.echo("voxtool: warning: no -o given: the map was built and measured, not written", err=True)
     emit(result, as_json, rows, written=output)
