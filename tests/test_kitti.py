@@ -168,7 +168,7 @@ def test_odometry_without_kiss_icp_names_the_extra(kitti_sample, tmp_path, monke
     monkeypatch.setitem(sys.modules, "kiss_icp", None)  # an import of it fails, as where it is not installed
     monkeypatch.setitem(sys.modules, "kiss_icp.config", None)
     code, _, err = cli("odometry", kitti_sample / "05", "-o", tmp_path / "p.txt", "--no-progress")
-    assert code == 2 and "pip install 'voxtool[odometry]'" in err and err.count("\n") == 1, err
+    assert code == 2 and "pip install 'voxtool-lidar[odometry]'" in err and err.count("\n") == 1, err
     assert not (tmp_path / "p.txt").exists()
 
 

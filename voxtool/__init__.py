@@ -12,6 +12,9 @@ Everything is imported on first use, so `import voxtool` (and `voxtool --help`) 
 from __future__ import annotations
 
 __version__ = "0.1.0"
+# the name on the package index (pip install), which is not the import name: "voxtool" there is
+# another project's
+DISTRIBUTION = "voxtool-lidar"
 __all__ = ["build", "load", "open_log"]
 
 

@@ -2,7 +2,7 @@
 
 KISS-ICP (PyPI `kiss-icp`, MIT; Vizzo et al., RA-L 2023) registers each scan to a local map of
 the scans before it: point-to-point ICP with an adaptive threshold, a constant-velocity guess,
-voxel-downsampled points. It is an optional extra (`pip install 'voxtool[odometry]'`): its
+voxel-downsampled points. It is an optional extra (`pip install 'voxtool-lidar[odometry]'`): its
 compiled core is what makes this practical, and it is maintained by its authors. The poses are
 of the first scan's sensor frame, written as a pose file that `build`, `clean` and `eval` read
 with `--poses` (TUM rows with times where the source has them, KITTI rows otherwise).
@@ -17,11 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from voxtool import DISTRIBUTION
 from voxtool.errors import ParameterError
 from voxtool.sources import SourceOptions, open_source
 from voxtool.sources.scan import add_drop_counts
 
-EXTRA = "pip install 'voxtool[odometry]' (KISS-ICP LiDAR odometry)"
+EXTRA = f"pip install '{DISTRIBUTION}[odometry]' (KISS-ICP LiDAR odometry)"
 
 
 @dataclass(frozen=True)

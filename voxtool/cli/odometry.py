@@ -34,7 +34,7 @@ def odometry(source, sample, output, max_range, min_range, voxel_size, topic, eg
     For scans that carry no poses: a driver's PCD dump, a dataset sample, a KITTI sequence without
     poses.txt. The poses are in the first scan's sensor frame. Odometry drifts (about 1 % of the
     distance on KITTI); a map from it is locally consistent, not surveyed. Needs the optional
-    extra: pip install 'voxtool[odometry]'.
+    extra: pip install 'voxtool-lidar[odometry]'.
 
     \b
     Examples:
