@@ -45,7 +45,7 @@ def map_ground(sequence: Path, resolution: float, band: float) -> tuple[np.ndarr
     """(ground flag per point of every scan, seconds) by the ground of the sequence's map."""
     from voxtool.api import build_map
     from voxtool.config import MapParams, SensorModel
-    from voxtool.ground import ground_of, occupied_keys
+    from voxtool.ground import ground_of, occupied_voxels
     from voxtool.io.mapfile import load_map
     from voxtool.keys import TREE_MAX_VAL
     from voxtool.sources import SourceOptions, open_source
@@ -55,7 +55,8 @@ def map_ground(sequence: Path, resolution: float, band: float) -> tuple[np.ndarr
     build_map(sequence, SourceOptions(), MapParams(resolution=resolution), SensorModel(), "octree", out, False)
     backend, _ = load_map(out)
     t0 = time.perf_counter()
-    ground = ground_of(occupied_keys(backend.leaves(), backend.sensor.threshold_log), resolution)
+    keys, hits = occupied_voxels(backend.leaves(), backend.sensor.threshold_log)
+    ground = ground_of(keys, resolution, weights=hits)
     flags = []
     for scan in open_source(sequence, SourceOptions()).scans:
         keys = np.floor(scan.points.astype(np.float64) / resolution).astype(np.int64) + TREE_MAX_VAL

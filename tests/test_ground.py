@@ -40,17 +40,49 @@ def terrain(tmp_path_factory):
     return path, xs, ys, box, crown
 
 
-def save_occupied(keys: np.ndarray, path) -> None:
-    """A map whose occupied voxels are `keys` (N, 3) and nothing else, saved as a snapshot."""
+def save_occupied(keys: np.ndarray, path, values: np.ndarray | None = None) -> None:
+    """A map whose occupied voxels are `keys` (N, 3) and nothing else, saved as a snapshot;
+    `values`: their log-odds (default 2.0, a few hits), one per key."""
     from voxtool.config import MapParams, SensorModel
     from voxtool.io.mapfile import save_map
     from voxtool.maps.octree import OctreeMap
 
-    occupied = np.unique(morton_encode(keys.astype(np.uint16)))
+    codes = morton_encode(keys.astype(np.uint16))
+    occupied, first = np.unique(codes, return_index=True)
+    values = np.full(codes.shape[0], 2.0) if values is None else np.asarray(values)
     m = OctreeMap(MapParams(resolution=RES), SensorModel())
     m.load_state({"leaf_codes": occupied, "leaf_depths": np.full(occupied.shape[0], 16, np.uint8),
-                  "leaf_values": np.full(occupied.shape[0], np.float32(2.0))})
+                  "leaf_values": values[first].astype(np.float32)})
     save_map(path, m, {"source": "generated"})
+
+
+def test_returns_under_the_road_are_not_its_ground(tmp_path):
+    """Real car scans hold returns metres under the road (multipath, wet asphalt): patches a few
+    voxels wide, each hit once, 2-8 m down. The ground stays the road (its height known to the
+    voxel), the road is free and a box on it occupied; a lowest voxel would take the patches."""
+    from voxtool.ground import ground_of, occupied_voxels, project_above_ground
+    from voxtool.io.mapfile import load_map
+
+    rng = np.random.default_rng(5)
+    side = 80
+    xs, ys = (a.ravel() for a in np.meshgrid(np.arange(side), np.arange(side), indexing="ij"))
+    box = (xs >= 40) & (xs < 45) & (ys >= 40) & (ys < 45)
+    keys, values = [np.c_[xs, ys, np.zeros(xs.shape, np.int64)]], [np.full(xs.shape, 3.5)]  # the road, hit often
+    keys += [np.c_[xs[box], ys[box], np.full(int(box.sum()), k)] for k in range(3, 8)]
+    values += [np.full(int(box.sum()), 3.5)] * 5
+    for _ in range(40):  # reflections: 3 x 3 columns, two layers, one hit each
+        x, y, z = rng.integers(2, side - 5), rng.integers(2, side - 5), -rng.integers(10, 40)
+        patch = np.array([(x + i, y + j, z + k) for i in range(3) for j in range(3) for k in range(2)])
+        keys.append(patch)
+        values.append(np.full(len(patch), 0.85))
+    keys = np.concatenate(keys) + np.array([TREE_MAX_VAL, TREE_MAX_VAL, TREE_MAX_VAL])
+    save_occupied(keys, tmp_path / "road.vxm", np.concatenate(values))
+    backend = load_map(tmp_path / "road.vxm")[0]
+    voxels, hits = occupied_voxels(backend.leaves(), backend.sensor.threshold_log)
+    ground = ground_of(voxels, RES, weights=hits)
+    np.testing.assert_allclose(ground.under(xs + TREE_MAX_VAL, ys + TREE_MAX_VAL), 0.0, atol=1e-9)
+    grid = project_above_ground(backend.leaves(), RES, backend.sensor.threshold_log, (0.3, 2.0))
+    assert np.array_equal(grid.cells[ys, xs], np.where(box, 100, 0))
 
 
 def test_a_road_across_a_voxel_boundary_is_free(tmp_path):

@@ -2,16 +2,23 @@
 
 Outdoors a grid cut at fixed heights is wrong wherever the ground slopes: the road uphill is an
 obstacle, the road downhill is out of range. What a navigation stack needs is height above the
-ground under each cell. The ground here comes from the map itself: each column's lowest
-occupied voxel (the floor), filtered by a progressive morphological filter (Zhang et al., 2003):
-the floor is opened (a minimum then a maximum over a square window) with windows that double, and
-a column whose floor stands above the opened surface by more than the window's allowed rise
-(a fixed step plus a slope times the window) is not ground: a car, a wall, a roof. Columns
-without ground (under a car, behind a wall) take the height of the nearest ground around them.
+ground under each cell. The ground here comes from the map itself (docs/design/ground.md):
+1. each column's floor: its lowest occupied voxel that is part of a surface (at least `support`
+   occupied voxels among the 24 around it), not a lone return under the road;
+2. pits: a floor more than `pit_depth_m` below the typical floor around it (a median over the
+   3 x 3 blocks of `pit_block_m` around it), whose voxel was hit only a few times, is a reflection (returns from under
+   the road: multipath, wet asphalt, glass); that column's floor is its lowest surface no deeper
+   than `pit_depth_m` under the typical one;
+3. a progressive morphological filter (Zhang et al., 2003): the floor is opened (a minimum then
+   a maximum over a square window) with windows that double, and a column whose floor stands
+   above the opened surface by more than the window's allowed rise (a fixed step plus a slope
+   times the window) is not ground: a car, a wall, a roof;
+4. columns without ground (under a car, behind a wall) take the height of the ground around them.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,6 +38,10 @@ class GroundParams:
     slope: float = 0.3  # the steepest ground (rise over run)
     step_m: float = 0.3  # the highest kerb or step that is still ground (metres)
     fill_m: float = 3.0  # how far a column without ground looks for ground around it (metres)
+    support: int = 2  # occupied voxels beside a floor voxel that make it a surface (0: the lowest voxel, whatever)
+    pit_block_m: float = 2.0  # the typical floor around a column: the median floors of 3 x 3 blocks this wide (0: no pits)
+    pit_depth_m: float = 1.0  # a floor deeper than this under the typical floor around it is not the ground ...
+    pit_hits: float = 3.5  # ... where their voxel was hit at most this often (the road is hit again and again)
 
 
 def parse_above_ground(text: str | None) -> tuple[float, float] | None:
@@ -158,15 +169,65 @@ def _under(kx, ky, height, x0, y0, column):
 
 
 @njit(cache=True, nogil=True)
-def _floor(keys, column, x0, y0, rows, cols):
-    """Each column's (`column` x `column` voxels) lowest key z among `keys` (N, 3), duplicates
-    allowed; NONE where none."""
+def _supported_floor(codes, column, x0, y0, rows, cols, support, lowest):
+    """Each column's lowest key z among the sorted unique voxel codes (x << 32 | y << 16 | z)
+    that has at least `support` occupied voxels among the 24 beside it (the 8 columns around, one
+    layer down to one layer up): a surface, not a lone return below it (reflections and multipath
+    put about 0.4 % of a car's points metres under the road, and a lowest voxel would take them
+    as the ground). NONE where no voxel of the column is supported."""
     floor = np.full((rows, cols), NONE, dtype=np.int32)
-    for i in range(keys.shape[0]):
-        r, c, z = keys[i, 1] // column - y0, keys[i, 0] // column - x0, keys[i, 2]
-        if z < floor[r, c]:
-            floor[r, c] = z
-    return floor
+    which = np.full((rows, cols), -1, dtype=np.int64)  # the floor's index in codes
+    n = codes.shape[0]
+    for i in range(n):
+        c = codes[i]
+        x, y, z = c >> 32, (c >> 16) & 0xFFFF, c & 0xFFFF
+        r, col = y // column - y0, x // column - x0
+        if z >= floor[r, col] or z < lowest[r, col]:
+            continue
+        found = 0
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                if dx == 0 and dy == 0:
+                    continue
+                # the three voxels z-1..z+1 of a neighbouring column are consecutive codes
+                lo = ((x + dx) << 32) | ((y + dy) << 16) | (z - 1)
+                j = np.searchsorted(codes, lo)
+                while j < n and codes[j] <= lo + 2:
+                    found += 1
+                    j += 1
+                if found >= support:
+                    break
+            if found >= support:
+                break
+        if found >= support:
+            floor[r, col] = z
+            which[r, col] = i
+    return floor, which
+
+
+def _typical_floor(floor: np.ndarray, block: int) -> np.ndarray:
+    """Each column's typical floor around it: the median of the median floors of the 3 x 3 blocks
+    of `block` x `block` columns around its own (NONE-free; NONE where none has a floor). A median,
+    not a closing: a closing's maximum takes a crown over ground that sparse points left unseen in a
+    few columns, and a reflection patch a few columns wide moves no median."""
+    rows, cols = floor.shape
+    br, bc = (rows + block - 1) // block, (cols + block - 1) // block
+    r, c = np.nonzero(floor != NONE)
+    ids = (r // block) * bc + c // block
+    z = floor[r, c]
+    order = np.lexsort((z, ids))
+    ids, z = ids[order], z[order]
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    counts = np.diff(np.r_[starts, ids.shape[0]])
+    medians = np.full(br * bc, np.nan)
+    medians[ids[starts]] = z[starts + counts // 2]
+    padded = np.pad(medians.reshape(br, bc), 1, constant_values=np.nan)
+    around = np.stack([padded[i:i + br, j:j + bc] for i in range(3) for j in range(3)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # no floor in any block around: NaN, NONE below
+        typical = np.nanmedian(around, axis=0)
+    per_column = np.repeat(np.repeat(typical, block, axis=0), block, axis=1)[:rows, :cols]
+    return np.where(np.isnan(per_column), NONE, np.round(per_column)).astype(np.int32)
 
 
 @dataclass
@@ -191,9 +252,11 @@ class Ground:
 
 
 def ground_of(keys: np.ndarray, resolution: float, params: GroundParams = GroundParams(),
-              column: int = 1) -> Ground:
+              column: int = 1, weights: np.ndarray | None = None) -> Ground:
     """The ground under occupied voxels given as finest keys (N, 3; repeats allowed), per
-    column of `column` x `column` voxels (heights stay at the voxels' resolution)."""
+    column of `column` x `column` voxels (heights stay at the voxels' resolution). `weights`: how
+    often each key was hit (a map's occupancy in hits, occupied_voxels); None: once per key, so
+    the points of scans count their own repeats."""
     keys = np.asarray(keys, dtype=np.int64)
     if keys.shape[0] == 0:
         raise ParameterError("the map holds no occupied voxel: there is no ground to find")
@@ -201,7 +264,19 @@ def ground_of(keys: np.ndarray, resolution: float, params: GroundParams = Ground
     cols, rows = int(keys[:, 0].max()) // column - x0 + 1, int(keys[:, 1].max()) // column - y0 + 1
     if rows * cols > 1 << 28:
         raise ParameterError(f"the ground grid would have {cols} x {rows} columns; --crop the map first")
-    floor = _floor(keys, column, x0, y0, rows, cols)
+    codes, inverse = np.unique(keys[:, 0] << 32 | keys[:, 1] << 16 | keys[:, 2], return_inverse=True)
+    hits = np.bincount(inverse.ravel(), weights=None if weights is None else weights, minlength=codes.shape[0])
+    floor, which = _supported_floor(codes, column, x0, y0, rows, cols, params.support, np.zeros((rows, cols), np.int32))
+    if params.pit_block_m > 0:
+        lowest_voxel = _supported_floor(codes, column, x0, y0, rows, cols, 0, np.zeros((rows, cols), np.int32))[0]
+        reference = _typical_floor(lowest_voxel, max(1, int(round(params.pit_block_m / (resolution * column)))))
+        depth = int(round(params.pit_depth_m / resolution))
+        pits = (floor != NONE) & (reference != NONE) & (reference - floor > depth)
+        pits &= hits[np.maximum(which, 0)] <= params.pit_hits  # a surface hit again and again is ground in a pit
+        if pits.any():
+            lowest = np.where(pits, reference - depth, np.iinfo(np.int32).max).astype(np.int32)
+            lifted = _supported_floor(codes, column, x0, y0, rows, cols, params.support, lowest)[0]
+            floor = np.where(pits, lifted, floor)
     width = resolution * column  # of a column, metres
     surface = floor.copy()
     ground = floor != NONE
@@ -220,9 +295,16 @@ def ground_of(keys: np.ndarray, resolution: float, params: GroundParams = Ground
     return Ground(height, x0, y0, resolution, column)
 
 
-def occupied_keys(leaves: Leaves, threshold_log: float) -> np.ndarray:
+HIT_LOG = float(np.log(0.7 / 0.3))  # OctoMap's default hit in log-odds: a map's occupancy in hits
+
+
+def occupied_voxels(leaves: Leaves, threshold_log: float) -> tuple[np.ndarray, np.ndarray]:
+    """The finest keys (N, 3) of the occupied voxels and their occupancy in hits (log-odds over
+    a default hit's: clamped maps say 4.1 at most), for ground_of's weights."""
     occupied = leaves.values > np.float32(threshold_log)
-    return morton_decode(expand_leaves(leaves.codes[occupied], leaves.depths[occupied])).astype(np.int64)
+    keys = morton_decode(expand_leaves(leaves.codes[occupied], leaves.depths[occupied])).astype(np.int64)
+    per_leaf = 8 ** (16 - leaves.depths[occupied].astype(np.int64))  # a coarser leaf: its finest voxels
+    return keys, np.repeat(leaves.values[occupied].astype(np.float64) / HIT_LOG, per_leaf)
 
 
 def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float, band: tuple[float, float],
@@ -230,8 +312,8 @@ def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float
     """The 2D grid of what stands MIN..MAX metres above the ground: a cell is occupied where an
     occupied voxel's centre lies in that band above the ground under it, free where the ground
     under it is known and nothing in the band is occupied, unknown where its ground is not."""
-    keys = occupied_keys(leaves, threshold_log)
-    ground = ground_of(keys, resolution, params)
+    keys, hits = occupied_voxels(leaves, threshold_log)
+    ground = ground_of(keys, resolution, params, weights=hits)
     cells = np.where(np.isnan(ground.height), UNKNOWN, FREE).astype(np.int8)
     # a voxel's height above the ground: its bottom face above the floor voxel's (the ground's height),
     # so whole voxel layers over the floor; a road that straddles a voxel boundary fills the floor

@@ -238,9 +238,10 @@ def picture(leaves: Leaves, resolution: float, threshold_log: float, view: str =
     raster = Raster.covering(view, *bounds, layer)
     raster.add(leaves, threshold_log)
     if above_ground is not None:
-        from voxtool.ground import ground_of, occupied_keys
+        from voxtool.ground import ground_of, occupied_voxels
 
-        raster.ground = ground_of(occupied_keys(leaves, threshold_log), resolution)
+        keys, hits = occupied_voxels(leaves, threshold_log)
+        raster.ground = ground_of(keys, resolution, weights=hits)
         raster.band = above_ground
     return raster
 
