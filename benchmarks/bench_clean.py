@@ -45,6 +45,11 @@ import numpy as np  # noqa: E402
 REAL = [("kaist03", 80.0), ("quick_shack", None), ("norlab", 60.0)]  # name, picture extent (m)
 
 
+def _score(value, width: int) -> str:
+    """A score as the tables print it; n/a where there was nothing of its kind (accuracy gives None)."""
+    return f"{'n/a':>{width}}" if value is None else f"{value:{width}.2f}"
+
+
 def scenes():
     from voxtool.synthetic import Lidar, street
 
@@ -200,14 +205,14 @@ def real_movers(data: Path, tmp: Path, out: Path, params, repeat: int) -> tuple[
                             "ground_judged": {**v, "removed_share": round(float(vox.mean()), 5)},
                             "ground_as_any_surface": {**g, "removed_share": round(float(off.mean()), 5)},
                             "ground_ms_per_scan": round(1000 * extra, 2)})
-        print(f"{scene.name:36} {truth.size:>9,} {int(truth.sum()):>8,} | {v['SA']:6.2f} {v['DA']:6.2f} {v['AA']:6.2f} "
-              f"{vox_s:6.2f}s | {d['SA']:6.2f} {d['DA']:6.2f} {d['AA']:6.2f} {duf_s:6.2f}s", flush=True)
+        print(f"{scene.name:36} {truth.size:>9,} {int(truth.sum()):>8,} | {_score(v['SA'], 6)} {_score(v['DA'], 6)} {_score(v['AA'], 6)} "
+              f"{vox_s:6.2f}s | {_score(d['SA'], 6)} {_score(d['DA'], 6)} {_score(d['AA'], 6)} {duf_s:6.2f}s", flush=True)
     print(f"\n{'the ground (voxtool)':36} {'ground':>9} | {'--ground-band -1: SA / DA / AA':>31} {'removed':>8} | "
           f"{'default (0.3 m): SA / DA / AA':>30} {'removed':>8} | {'cost a scan':>11}")
     for r in ground_rows:
         g, v = r["ground_as_any_surface"], r["ground_judged"]
-        print(f"{r['input']:36} {r['ground_points']:>9,} | {g['SA']:13.2f} {g['DA']:6.2f} {g['AA']:6.2f} "
-              f"{100 * g['removed_share']:7.2f}% | {v['SA']:12.2f} {v['DA']:6.2f} {v['AA']:6.2f} "
+        print(f"{r['input']:36} {r['ground_points']:>9,} | {_score(g['SA'], 13)} {_score(g['DA'], 6)} {_score(g['AA'], 6)} "
+              f"{100 * g['removed_share']:7.2f}% | {_score(v['SA'], 12)} {_score(v['DA'], 6)} {_score(v['AA'], 6)} "
               f"{100 * v['removed_share']:7.2f}% | {r['ground_ms_per_scan']:8.1f} ms")
     return rows, ground_rows
 
@@ -250,8 +255,8 @@ def main() -> None:
             v, d = accuracy(vox, truth), accuracy(duf, truth)
             rows.append({"input": name, "points": int(truth.size), "dynamic_points": int(truth.sum()),
                          "voxtool": {**v, "seconds": vox_s}, "dufomap": {**d, "seconds": duf_s}})
-            print(f"{name:32} {truth.size:>9,} {int(truth.sum()):>8,} | {v['SA']:6.2f} {v['DA']:6.2f} {v['AA']:6.2f} "
-                  f"{vox_s:6.2f}s | {d['SA']:6.2f} {d['DA']:6.2f} {d['AA']:6.2f} {duf_s:6.2f}s")
+            print(f"{name:32} {truth.size:>9,} {int(truth.sum()):>8,} | {_score(v['SA'], 6)} {_score(v['DA'], 6)} {_score(v['AA'], 6)} "
+                  f"{vox_s:6.2f}s | {_score(d['SA'], 6)} {_score(d['DA'], 6)} {_score(d['AA'], 6)} {duf_s:6.2f}s")
     print()
     print(f"{'real data (no labels)':32} {'points':>9} | {'voxtool removed':>16} {'time':>7} | "
           f"{'DUFOMap removed':>16} {'time':>7} | picture")

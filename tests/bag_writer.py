@@ -52,14 +52,14 @@ def _transform(T, kind: str, parent: str, child: str, ns: int, t, q_wxyz):
     return T["tf2_msgs/msg/TFMessage"](transforms=[ts])
 
 
-def _odometry(T, kind: str, ns: int, t, q_wxyz):
+def _odometry(T, kind: str, ns: int, t, q_wxyz, child: str = "lidar"):
     pose = T["geometry_msgs/msg/Pose"](
         position=T["geometry_msgs/msg/Point"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
         orientation=T["geometry_msgs/msg/Quaternion"](x=float(q_wxyz[1]), y=float(q_wxyz[2]), z=float(q_wxyz[3]),
                                                       w=float(q_wxyz[0])))
     zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
     return T["nav_msgs/msg/Odometry"](
-        header=_header(T, kind, ns, "map"), child_frame_id="lidar",
+        header=_header(T, kind, ns, "map"), child_frame_id=child,
         pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
         twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero),
                                                          covariance=np.zeros(36)))

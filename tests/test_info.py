@@ -60,7 +60,7 @@ def test_a_bag_nothing_poses_names_what_would(tmp_path, scans):
     assert f["pose_source"]["posed"] is False
     assert "--pose-topic /odom" in f["pose_source"]["why"]
     f = _info(path, "--pose-topic", "/odom")
-    assert f["pose_source"] == {"posed": True, "by": "pose topic /odom"}
+    assert f["pose_source"] == {"posed": True, "by": "pose topic /odom", "mount": "'/odom' poses the scan frame 'lidar' itself"}
     assert f["scans"] == len(scans) and f["time_span"]["seconds"] == pytest.approx(0.4)
     assert f["points_per_scan"]["max"] == max(len(p) for p, _, _ in scans)
 

@@ -24,8 +24,9 @@ def test_every_install_hint_names_the_distribution():
     """"voxtool" on the package index is another project: `pip install 'voxtool[odometry]'` would
     install it. The distribution is named in pyproject.toml, voxtool.DISTRIBUTION and every hint
     (code, README, docs), and it is the one installed here that provides the voxtool package."""
-    import tomllib
     from importlib.metadata import packages_distributions
+
+    import tomllib
 
     import voxtool
 

@@ -203,6 +203,91 @@ def test_tf_as_tf2_reads_it(tmp_path, scans, case):
     assert [(e["parent"], e["child"]) for e in got["tf"]] == [("odom", "lidar")]
 
 
+MOUNT = np.array([0.1, 0.0, 0.17])  # base_footprint -> lidar, as a TurtleBot3's base_scan sits
+
+
+def write_mounted_bag(path, scans, mode: str, pose_type: str = "odom"):
+    """The scans (lidar poses) as a robot's bag has them: the robot's base_footprint posed by /tf
+    (mode "tf": odom -> base_footprint) or by an Odometry topic /odom ("odom", child
+    base_footprint; "odom-no-mount": without the /tf_static mount), the lidar on the base by
+    /tf_static. pose_type "pose": a PoseStamped /odom instead (it names no frame)."""
+    from bag_writer import _odometry, _transform
+    from rosbags.rosbag1 import Writer
+
+    from voxtool.geometry import Pose
+
+    store = _legacy_store()
+    T = store.types
+    with Writer(path) as writer:
+        c_scan = writer.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=store)
+        c_static = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=store)
+        c_tf = writer.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=store)
+        odom_type = "nav_msgs/msg/Odometry" if pose_type == "odom" else "geometry_msgs/msg/PoseStamped"
+        c_odom = writer.add_connection("/odom", odom_type, typestore=store)
+        if mode != "odom-no-mount":
+            writer.write(c_static, 1, store.serialize_ros1(
+                _transform(T, "ros1", "base_footprint", "lidar", 0, MOUNT, (1.0, 0.0, 0.0, 0.0)), "tf2_msgs/msg/TFMessage"))
+        for i, (pts, origin, q) in enumerate(scans):
+            ns = 1_000_000_000 + i * 100_000_000
+            lidar = Pose.from_quat(origin, *q)
+            base = lidar.compose(Pose(np.eye(3), -MOUNT))  # world <- base = world <- lidar <- base
+            qb = _quat_wxyz(base.rotation)
+            if mode == "tf":
+                writer.write(c_tf, ns, store.serialize_ros1(_transform(T, "ros1", "odom", "base_footprint", ns,
+                                                                       base.translation, qb), "tf2_msgs/msg/TFMessage"))
+            else:
+                odom = _odometry(T, "ros1", ns, base.translation, qb, child="base_footprint")
+                if pose_type == "pose":
+                    odom = T["geometry_msgs/msg/PoseStamped"](header=odom.header, pose=odom.pose.pose)
+                writer.write(c_odom, ns, store.serialize_ros1(odom, odom_type))
+            writer.write(c_scan, ns, store.serialize_ros1(cloud(T, "ros1", pts, ns, "lidar"),
+                                                          "sensor_msgs/msg/PointCloud2"))
+    return path
+
+
+def _quat_wxyz(r: np.ndarray) -> tuple:
+    """A rotation matrix's unit quaternion (w, x, y, z), w >= 0 (Shepperd's method, trace branch:
+    the yaw-only rotations here)."""
+    w = np.sqrt(max(1.0 + r[0, 0] + r[1, 1] + r[2, 2], 0.0)) / 2.0
+    return (w, (r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w))
+
+
+def test_a_pose_topic_is_composed_with_the_sensor_mount(tmp_path, scans):
+    """--pose-topic /odom (child base_footprint) with /tf_static base_footprint -> lidar: the map
+    of the bag posed by /tf through the same mount; without the mount, identity is assumed and
+    said on one warning line, and the map sits 0.17 m low."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    (tmp_path / "c").mkdir()
+    _, by_tf, _ = _map_of(tmp_path / "a", write_mounted_bag(tmp_path / "tf.bag", scans, "tf"))
+    bag = write_mounted_bag(tmp_path / "odom.bag", scans, "odom")
+    _, by_odom, err = _map_of(tmp_path / "b", bag, "--pose-topic", "/odom")
+    la, lb = by_tf.leaves(), by_odom.leaves()
+    assert np.array_equal(la.codes, lb.codes) and np.allclose(la.values, lb.values), err
+    assert "identity assumed" not in err
+    code, text, err = cli("info", bag, "--pose-topic", "/odom", "--json")
+    assert code == 0, err
+    assert json.loads(text)["pose_source"]["mount"] == ("'/odom' poses 'base_footprint'; /tf mounts the scan frame "
+                                                        "'lidar' on it at [0.100, 0.000, 0.170] m")
+    bare = write_mounted_bag(tmp_path / "bare.bag", scans, "odom-no-mount")
+    report, by_bare, err = _map_of(tmp_path / "c", bare, "--pose-topic", "/odom")
+    assert [ln for ln in err.splitlines() if "identity assumed" in ln] == [
+        f"voxtool: warning: {bare}: no /tf or /tf_static chain from '/odom''s frame 'base_footprint' to the scan "
+        "frame 'lidar': identity assumed (a sensor mount missing puts the map where the 'base_footprint' frame is)"]
+    occupied = [m.leaves().codes[m.leaves().values > 0] for m in (by_tf, by_bare)]
+    assert len(np.intersect1d(*occupied)) < 0.5 * len(occupied[0])  # the map is elsewhere
+
+
+def test_a_pose_stamped_that_names_no_frame_is_said_to_pose_the_sensor(tmp_path, scans):
+    bag = write_mounted_bag(tmp_path / "pose.bag", scans, "odom", pose_type="pose")
+    code, _, err, _ = _build(tmp_path, bag, "--pose-topic", "/odom")
+    assert code == 0, err
+    assert [ln for ln in err.splitlines() if "names no frame" in ln] == [
+        f"voxtool: warning: {bag}: '/odom' names no frame it poses (no child_frame_id): its poses are taken as the "
+        "scan frame 'lidar's, no mount, though /tf mounts 'lidar' on 'base_footprint' (a body's pose used as the "
+        "sensor's)"]
+
+
 def test_a_pose_topic_on_another_clock_poses_nothing_and_says_so(tmp_path, scans):
     """Pose stamps that miss every scan (a simulator's 60 s beside the sensor's 1 s): exit 3 naming
     both spans, no map written; not exit 0 with an empty map."""

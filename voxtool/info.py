@@ -100,7 +100,7 @@ def _pose_source(poses, frame: str | None, stamps: list[int]) -> dict:
         text = str(err)
         return {"posed": False, "why": text.split(": ", 1)[1] if ": " in text else text}
     if poses.pose_topic is not None:
-        return {"posed": True, "by": f"pose topic {poses.pose_topic}"}
+        return {"posed": True, "by": f"pose topic {poses.pose_topic}", "mount": poses.mount_note}
     return {"posed": True, "by": f"/tf: scan frame '{frame.lstrip('/')}' in world frame '{poses.world_frame}'"}
 
 

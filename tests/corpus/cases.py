@@ -291,7 +291,7 @@ CASES = [
     ("mcap field beyond point_step", mcap_case(overrides={"fields": [{"name": "x", "offset": 0, "datatype": 7, "count": 1}, {"name": "y", "offset": 4, "datatype": 7, "count": 1}, {"name": "z", "offset": 10, "datatype": 7, "count": 1}]}), 3, "field 'z' at offset 10 does not fit point_step 12"),
     ("mcap cloud without z", mcap_case(overrides={"fields": [{"name": "x", "offset": 0, "datatype": 7, "count": 1}, {"name": "y", "offset": 4, "datatype": 7, "count": 1}]}), 3, "has no 'z' field"),
     ("mcap unknown datatype", mcap_case(overrides={"fields": [{"name": "x", "offset": 0, "datatype": 9, "count": 1}, {"name": "y", "offset": 4, "datatype": 7, "count": 1}, {"name": "z", "offset": 8, "datatype": 7, "count": 1}]}), 3, "field 'x' has unknown datatype 9"),
-    ("mcap missing pose topic", mcap_case(extra=("--pose-topic", "/odom")), 3, "pose topic '/odom' is not Odometry or PoseStamped"),
+    ("mcap missing pose topic", mcap_case(extra=("--pose-topic", "/odom")), 3, "pose topic '/odom' is not Odometry, PoseStamped, PoseWithCovarianceStamped or TransformStamped"),
     # --- ScanGraph -----------------------------------------------------------------------
     ("graph truncated points", graph_case(lambda b: b[:500]), 3, "declares 30 points, beyond the file or the limit"),
     ("graph too many nodes", graph_case(lambda b: struct.pack("<I", 10**6) + b[4:]), 3, "declares 1000000 nodes"),

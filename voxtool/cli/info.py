@@ -65,6 +65,8 @@ def _rows(f: dict) -> list[tuple[str, str]]:
     pose = f.get("pose_source")
     if isinstance(pose, dict):
         rows.append(("poses", f"by {pose['by']}" if pose["posed"] else f"none: {pose['why']}"))
+        if pose.get("mount"):
+            rows.append(("", pose["mount"]))
     elif pose:
         rows.append(("poses", pose))
     if f.get("lost"):

@@ -76,7 +76,8 @@ class McapCloudSource:
         self.topic = topic
         self.count = counts.get(topic)
         if pose_topic is not None and topics.get(pose_topic) not in POSE_TYPES:
-            raise SourceError(f"{self.path}: pose topic '{pose_topic}' is not Odometry or PoseStamped")
+            raise SourceError(f"{self.path}: pose topic '{pose_topic}' is not Odometry, PoseStamped, "
+                              "PoseWithCovarianceStamped or TransformStamped")
         self._tf_topics = tf_topics(topics)
         self._topics = topics
         self._msgtype = topics[topic]
@@ -98,14 +99,15 @@ class McapCloudSource:
         poses = SensorPoses(str(self.path), self.world_frame, self.pose_topic, self._topics)
         try:
             extra = {} if self._linear is None else {"decoder_factory": self._decoders}
-            if self.pose_topic is not None:
-                for _, _, _, msg in self._reader.iter_decoded_messages(topics=[self.pose_topic], log_time_order=True,
-                                                                       **extra):
-                    poses.add_pose(msg)
-            elif self._tf_topics:  # (no topics would mean every topic to the mcap reader)
-                for _, channel, _, msg in self._reader.iter_decoded_messages(topics=self._tf_topics,
-                                                                             log_time_order=True, **extra):
-                    poses.add_transforms(msg, channel.topic == "/tf_static")
+            # with a pose topic, /tf too: the mount from the frame it poses to the scan frame
+            topics = ([self.pose_topic] if self.pose_topic is not None else []) + self._tf_topics
+            if topics:  # (no topics would mean every topic to the mcap reader)
+                for _, channel, _, msg in self._reader.iter_decoded_messages(topics=topics, log_time_order=True,
+                                                                             **extra):
+                    if channel.topic == self.pose_topic:
+                        poses.add_pose(msg)
+                    else:
+                        poses.add_transforms(msg, channel.topic == "/tf_static")
         except _decode_errors() as err:
             raise SourceError(f"{self.path}: cannot read its poses: {mcap_problem(err)}") from err
         poses.check()

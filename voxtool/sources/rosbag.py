@@ -260,7 +260,8 @@ class BagCloudSource:
         self.count: int | None = self._bag.count(self.topic)
         if pose_topic is not None and topics.get(pose_topic) not in POSE_TYPES:
             candidates = sorted(t for t, s in topics.items() if s in POSE_TYPES)
-            raise SourceError(f"{self.path}: pose topic '{pose_topic}' is not Odometry or PoseStamped "
+            raise SourceError(f"{self.path}: pose topic '{pose_topic}' is not Odometry, PoseStamped, "
+                              "PoseWithCovarianceStamped or TransformStamped "
                               f"(it is {topics.get(pose_topic) or 'not in the bag'}; the bag's pose topics: "
                               f"{', '.join(candidates) or 'none'})")
         self._poses = SensorPoses(str(self.path), world_frame, pose_topic, topics) if own_poses else SensorFrame()
@@ -276,11 +277,12 @@ class BagCloudSource:
 
     def _read_poses(self) -> None:
         poses = self._poses
-        topics = [poses.pose_topic] if poses.pose_topic is not None else self._tf_topics
+        # with a pose topic, /tf too: the mount from the frame it poses to the scan frame
+        topics = ([poses.pose_topic] if poses.pose_topic is not None else []) + self._tf_topics
         try:
             for topic, msgtype, raw in self._bag.messages(topics):
                 msg = self._bag.deserialize(raw, msgtype)
-                if poses.pose_topic is not None:
+                if topic == poses.pose_topic:
                     poses.add_pose(msg)
                 else:
                     poses.add_transforms(msg, topic == "/tf_static")

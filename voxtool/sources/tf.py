@@ -15,7 +15,8 @@ STAMP_TOLERANCE_NS = 1_000_000  # a cloud this close outside a transform's time 
 TF = "tf2_msgs/msg/TFMessage"
 LEGACY_TF = "tf/msg/tfMessage"  # ROS 1 before tf2 (Willow Garage-era bags): the same fields on /tf
 TF_TYPES = (TF, LEGACY_TF)
-POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped")
+POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped",
+              "geometry_msgs/msg/TransformStamped")
 
 
 class OutsideTransforms(SourceError):
@@ -61,6 +62,14 @@ def pose_hint(where: str, frame: str, topics: dict[str, str]) -> str:
     options.append(f"--world-frame {frame} (a static sensor: the map in its own frame)")
     return ("pose them with " + ", or ".join(options) + f"; or estimate them: `voxtool odometry {where} -o poses.txt`, "
             "then --poses poses.txt")
+
+
+def _warn(line: str) -> None:
+    import warnings
+
+    from voxtool.errors import VoxtoolWarning
+
+    warnings.warn(line, VoxtoolWarning, stacklevel=3)
 
 
 def header_stamp(header) -> int:
@@ -139,6 +148,8 @@ class SensorPoses:
         self.pose_topic = pose_topic
         self.edges: dict[tuple[str, str], StampedPoses] = {}
         self.sensor: StampedPoses | None = StampedPoses() if pose_topic is not None else None
+        self.pose_child: str | None = None  # the frame a pose topic's poses are of (Odometry's child_frame_id)
+        self.mount_note: str | None = None  # how a pose topic's frame reaches the scan frame: said once
 
     def add_transforms(self, msg, static: bool) -> None:
         """A tf2_msgs/TFMessage: every transform it holds, edge by edge."""
@@ -150,9 +161,18 @@ class SensorPoses:
             series.add(stamp, _pose_of(tr.transform.translation, tr.transform.rotation))
 
     def add_pose(self, msg) -> None:
-        """An Odometry or PoseStamped message of the pose topic."""
-        pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
-        self.sensor.add(header_stamp(msg.header), _pose_of(pose.position, pose.orientation))
+        """A message of the pose topic: Odometry, PoseStamped, PoseWithCovarianceStamped or
+        TransformStamped. Odometry and TransformStamped name the frame they pose (child_frame_id);
+        the others pose a frame they do not name."""
+        if hasattr(msg, "transform"):
+            pose = _pose_of(msg.transform.translation, msg.transform.rotation)
+        else:
+            p = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
+            pose = _pose_of(p.position, p.orientation)
+        child = getattr(msg, "child_frame_id", "").lstrip("/")
+        if child and self.pose_child is None:
+            self.pose_child = child
+        self.sensor.add(header_stamp(msg.header), pose)
 
     def check(self) -> None:
         """After the pose messages are read: a pose topic without messages is an error."""
@@ -168,8 +188,37 @@ class SensorPoses:
                 raise OutsideTransforms(f"{self.where}: pose topic '{self.pose_topic}' has no pose at {stamp} ns "
                                         f"(its poses span {s[0]}..{s[-1]})", stamp < s[0], (s[0], s[-1]),
                                         self.pose_topic)
-            return pose
+            return pose.compose(self._mount(frame.lstrip("/"), stamp))
         return self._chain(frame.lstrip("/"), stamp)
+
+    def _mount(self, frame: str, stamp: int) -> Pose:
+        """The scan frame in the pose topic's frame, as tf2 users get it: /tf and /tf_static from
+        the posed frame (an Odometry's child_frame_id: base_footprint, a body) to the scan's (the
+        laser). Identity where the topic names no frame or /tf has no chain, said once (mount_note)."""
+        child = self.pose_child
+        if child is None or child == frame:
+            if self.mount_note is None:
+                self.mount_note = (f"'{self.pose_topic}' poses the scan frame '{frame}' itself" if child == frame else
+                                   f"'{self.pose_topic}' names no frame it poses (no child_frame_id): its poses are "
+                                   f"taken as the scan frame '{frame}'s, no mount")
+                mounts = sorted(p for p, c in self.edges if c == frame)
+                if child is None and mounts:  # the scan frame hangs on another: the pose is likely that one's
+                    _warn(f"{self.where}: {self.mount_note}, though /tf mounts '{frame}' on '{mounts[0]}' "
+                          f"(a body's pose used as the sensor's)")
+            return Pose.identity()
+        pose = self._path_pose(child, frame, stamp)
+        if pose is None:
+            if self.mount_note is None:
+                self.mount_note = (f"no /tf or /tf_static chain from '{self.pose_topic}''s frame '{child}' to the scan "
+                                   f"frame '{frame}': identity assumed (a sensor mount missing puts the map where the "
+                                   f"'{child}' frame is)")
+                _warn(f"{self.where}: {self.mount_note}")
+            return Pose.identity()
+        if self.mount_note is None:
+            t = pose.translation
+            self.mount_note = (f"'{self.pose_topic}' poses '{child}'; /tf mounts the scan frame '{frame}' on it at "
+                               f"[{t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}] m")
+        return pose
 
     def _root_of(self, frame: str) -> str:
         """The top of the /tf tree above `frame` (the default world frame)."""
@@ -192,12 +241,25 @@ class SensorPoses:
                 raise NoPoseSource(f"{self.where}: no transform reaches the scan frame '{frame}' ({tree}); "
                                   f"{pose_hint(self.where, frame, self.topics)}")
             self.world_frame = root
-        if frame == self.world_frame:
+        pose = self._path_pose(self.world_frame, frame, stamp)
+        if pose is None:
+            frames = sorted({f for edge in self.edges for f in edge})
+            if frames and self.world_frame not in frames:
+                raise NoPoseSource(f"{self.where}: --world-frame {self.world_frame} is not a frame of its /tf "
+                                   f"(its frames: {', '.join(frames)}); or {pose_hint(self.where, frame, self.topics)}")
+            raise NoPoseSource(f"{self.where}: no transform chain from '{self.world_frame}' to '{frame}' in /tf; "
+                              f"{pose_hint(self.where, frame, self.topics)}")
+        return pose
+
+    def _path_pose(self, root: str, frame: str, stamp: int) -> Pose | None:
+        """`frame`'s pose in `root` at `stamp`, walking /tf edges either way; None where no chain
+        joins them (OutsideTransforms where one does but not at that time)."""
+        if frame == root:
             return Pose.identity()
         # breadth-first search over the (undirected) transform tree
         prev: dict[str, tuple[str, tuple[str, str], bool]] = {}
-        seen = {self.world_frame}
-        queue = deque([self.world_frame])
+        seen = {root}
+        queue = deque([root])
         while queue:
             node = queue.popleft()
             for (parent, child) in self.edges:
@@ -207,15 +269,10 @@ class SensorPoses:
                         prev[b] = (a, (parent, child), forward)
                         queue.append(b)
         if frame not in prev:
-            frames = sorted({f for edge in self.edges for f in edge})
-            if frames and self.world_frame not in frames:
-                raise NoPoseSource(f"{self.where}: --world-frame {self.world_frame} is not a frame of its /tf "
-                                   f"(its frames: {', '.join(frames)}); or {pose_hint(self.where, frame, self.topics)}")
-            raise NoPoseSource(f"{self.where}: no transform chain from '{self.world_frame}' to '{frame}' in /tf; "
-                              f"{pose_hint(self.where, frame, self.topics)}")
+            return None
         pose = Pose.identity()
         node = frame
-        while node != self.world_frame:
+        while node != root:
             a, edge, forward = prev[node]
             p = self.edges[edge].at(stamp)
             if p is None:
