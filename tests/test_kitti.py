@@ -187,3 +187,50 @@ def test_a_real_drivers_dump_without_poses_is_warned_and_mapped_sharper_with_odo
                           "--no-progress")
     assert code == 0 and "has a pose" not in err, err
     assert json.loads(text)["occupied_voxels"] < 0.9 * smeared  # measured: 74,634 against 88,593
+
+
+def test_a_sequence_without_tr_is_listed_and_builds_with_kitti_tr(sequences, tmp_path):
+    """mini-KITTI as published: calib.txt without Tr. info lists the scans and names both ways out;
+    build refuses in one line naming them; --kitti-tr (a calib.txt or its 12 numbers) builds the
+    map of the sequence with Tr; the sequence's own (camera) poses.txt is refused as --poses."""
+    from voxtool.io.mapfile import load_map
+
+    seq = sequences / "00"
+    calib = seq / "calib.txt"
+    with_tr = tmp_path / "calib_with_tr.txt"
+    shutil.copy(calib, with_tr)
+    tr_line = next(ln for ln in calib.read_text().splitlines() if ln.startswith("Tr:"))
+    calib.write_text("".join(ln + "\n" for ln in calib.read_text().splitlines() if not ln.startswith("Tr:")))
+    code, text, err = cli("info", seq, "--json")
+    assert code == 0, err
+    got = json.loads(text)
+    assert got["scans"] == 10 and got["pose_source"].startswith("none: ")
+    assert "voxtool odometry" in got["pose_source"] and "--kitti-tr" in got["pose_source"]
+    code, _, err = cli("build", seq, "-o", tmp_path / "m.vxm", "--no-progress")
+    assert code == 3 and "voxtool odometry" in err and "--kitti-tr" in err and err.count("\n") == 1, err
+    numbers = ",".join(tr_line.split(":")[1].split())
+    maps = []
+    for tr in (str(with_tr), numbers):
+        out = tmp_path / f"m{len(maps)}.vxm"
+        code, _, err = cli("build", seq, "-o", out, "--kitti-tr", tr, "--no-progress")
+        assert code == 0, err
+        maps.append(load_map(out)[0].leaves())
+    shutil.copy(with_tr, calib)
+    assert cli("build", seq, "-o", tmp_path / "ref.vxm", "--no-progress")[0] == 0
+    ref = load_map(tmp_path / "ref.vxm")[0].leaves()
+    for got_map in maps:
+        assert np.array_equal(got_map.codes, ref.codes) and np.array_equal(got_map.values, ref.values)
+    code, _, err = cli("build", seq, "-o", tmp_path / "c.vxm", "--poses", seq / "poses.txt", "--no-progress")
+    assert code == 3 and "the sequence's own poses, the camera's" in err
+    longer = tmp_path / "longer.txt"
+    longer.write_text((seq / "poses.txt").read_text())
+    code, _, err = cli("build", seq, "-o", tmp_path / "c.vxm", "--poses", longer, "--no-progress")
+    assert code == 3 and "for 10 scans (a whole sequence's or a longer run's file?" in err, err
+
+
+def test_info_spans_the_times_from_kittis_first_scan_at_zero(sequences):
+    times = np.loadtxt(sequences / "00" / "times.txt")[:10]
+    assert times[0] == 0.0
+    code, text, err = cli("info", sequences / "00", "--json")
+    assert code == 0, err
+    assert json.loads(text)["time_span"]["seconds"] == pytest.approx(times[-1] - times[0], abs=1e-6)

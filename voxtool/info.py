@@ -20,8 +20,9 @@ def _spread(values: list[int]) -> dict | None:
 
 
 def _span(stamps: list[int]) -> dict | None:
-    stamps = [s for s in stamps if s]
-    if not stamps:
+    """The stamps' span; None where the scans have no times (every stamp 0). A stamp of 0 among
+    others is a time (KITTI's first scan), not a missing one."""
+    if not any(stamps):
         return None
     return {"first_ns": min(stamps), "last_ns": max(stamps), "seconds": round((max(stamps) - min(stamps)) * 1e-9, 6)}
 
@@ -42,13 +43,24 @@ def describe(source: str | Path, options: SourceOptions | None = None) -> dict:
 
 def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
     """Files of scans (PCD, PLY, graph): every scan read, as build would read it."""
-    stream = open_source(path, options)
+    unposed = None
+    try:
+        stream = open_source(path, options)
+    except SourceError as err:
+        if kind != "kitti" or options.poses is not None:
+            raise
+        # a sequence build cannot pose (no Tr, no poses.txt): its scans listed all the same, and why
+        from dataclasses import replace
+
+        unposed = str(err)
+        stream = open_source(path, replace(options, sensor_frame=True))
     points, stamps = [], []
     for scan in stream.scans:
         points.append(scan.points_read)
         stamps.append(scan.stamp_ns)
     out = {"source": str(path), "kind": stream.kind, "scans": len(points), "points_per_scan": _spread(points),
-           "time_span": _span(stamps), "pose_source": _file_pose_source(path, kind, options)}
+           "time_span": _span(stamps),
+           "pose_source": _file_pose_source(path, kind, options) if unposed is None else f"none: {unposed}"}
     if kind == "pcd":
         first = next(iter(sorted(path.glob("*.pcd"))), None) if path.is_dir() else path
         if first is not None:

@@ -220,6 +220,24 @@ def parse_box(text: str | None, option: str, frame: str = "") -> tuple[float, ..
     return box
 
 
+def parse_kitti_tr(text: str | None) -> tuple[float, ...] | None:
+    """--kitti-tr: 12 numbers, or a calib.txt holding a Tr line; None when not given."""
+    from voxtool.errors import ParameterError
+    from voxtool.sources.kitti import read_tr, tr_matrix
+
+    if text is None:
+        return None
+    if Path(text).is_file():
+        return tuple(read_tr(Path(text))[:3].ravel())
+    try:
+        values = [float(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        values = []
+    if len(values) != 12:
+        raise ParameterError(f"--kitti-tr {text}: give 12 numbers (row-major 3x4 [R|t]) or a calib.txt with a Tr line")
+    return tuple(tr_matrix(values, "--kitti-tr")[:3].ravel())
+
+
 def ego_box_option():
     return click.option("--ego-box", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
                         help="Drop the points inside this box of the sensor's frame (metres): the vehicle's own body, "
@@ -232,6 +250,8 @@ def _source_option_list() -> list:
     return [
         click.option("--min-range", default=0.0, show_default=True, type=float, help="Drop points closer than this to the sensor."),
         ego_box_option(),
+        click.option("--kitti-tr", metavar="TR", help="A KITTI sequence's Tr (LiDAR to camera) where its calib.txt has "
+                     "none: 12 numbers (row-major 3x4 [R|t], commas or spaces) or a calib.txt that has a Tr line."),
         click.option("--poses", type=click.Path(path_type=Path), help="Pose file (TUM, index+TUM or KITTI), one row per scan file, or per scan message of a ROS log "
                      "(instead of its /tf; `voxtool odometry` writes one)."),
         click.option("--no-viewpoint", is_flag=True,
@@ -286,7 +306,8 @@ def source_setup(kw: dict):
                             topic=kw.pop("topic"), world_frame=kw.pop("world_frame"), pose_topic=kw.pop("pose_topic"),
                             start=kw.pop("start"), stop=kw.pop("stop"), every=kw.pop("every"),
                             min_range=kw.pop("min_range"), bad_scans=kw.pop("bad_scans"),
-                            ego_box=parse_box(kw.pop("ego_box"), "--ego-box", "in the sensor's frame"))
+                            ego_box=parse_box(kw.pop("ego_box"), "--ego-box", "in the sensor's frame"),
+                            kitti_tr=parse_kitti_tr(kw.pop("kitti_tr")))
     return with_origin(options, kw.pop("origin", None))  # commands with origin_option among their **kw
 
 

@@ -43,6 +43,8 @@ class SourceOptions:
     # (xmin, ymin, zmin, xmax, ymax, zmax) in the sensor's frame, metres: the vehicle's own body, whose
     # returns are dropped (PCL's CropBox, negative); they would leave a trail of obstacles along the path
     ego_box: tuple[float, ...] | None = None
+    # a KITTI sequence's Tr (LiDAR to camera: 12 numbers, row-major [R|t]) where its calib.txt has none
+    kitti_tr: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.bad_scans not in BAD_SCAN_POLICIES:
@@ -191,7 +193,9 @@ def _pose_rows(options: SourceOptions, n_scans: int | None, scans: str = "scans"
 
     rows = read_poses(options.poses)
     if n_scans is not None and len(rows) != n_scans:
-        raise SourceError(f"{options.poses}: pose file has {len(rows)} poses for {n_scans} {scans}")
+        longer = (" (a whole sequence's or a longer run's file? --poses takes one row per scan read, in order: "
+                  "cut it to the scans read)" if len(rows) > n_scans else "")
+        raise SourceError(f"{options.poses}: pose file has {len(rows)} poses for {n_scans} {scans}{longer}")
     return rows
 
 
@@ -307,8 +311,14 @@ def _open_kitti(path: Path, options: SourceOptions) -> ScanStream:
     sequence = kitti.sequence_dir(path)
     files = kitti.scan_files(sequence)
     frames = [int(f.stem) for f in files]
+    own = kitti.pose_file(sequence)
+    if options.poses is not None and own is not None and Path(options.poses).resolve() == own.resolve():
+        raise SourceError(f"{options.poses}: the sequence's own poses, the camera's: --poses takes LiDAR poses; leave "
+                          "it out, and the scans are posed by these moved to the LiDAR with calib.txt's Tr "
+                          "(or --kitti-tr)")
     rows = _pose_rows(options, len(files))
-    poses = None if rows is not None or options.sensor_frame else kitti.lidar_poses(sequence, frames)
+    tr = None if options.kitti_tr is None else kitti.tr_matrix(options.kitti_tr, "--kitti-tr")
+    poses = None if rows is not None or options.sensor_frame else kitti.lidar_poses(sequence, frames, tr)
     times = kitti.frame_times(sequence, frames)
     bad = BadScans(options.bad_scans)
 

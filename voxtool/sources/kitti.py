@@ -50,11 +50,26 @@ def read_bin(path: Path) -> np.ndarray:
     return np.fromfile(path, dtype="<f4").reshape(-1, 4)[:, :3]
 
 
+WAYS_OUT = ("estimate LiDAR poses with `voxtool odometry {seq} -o poses.txt`, then --poses poses.txt; or give the "
+            "recording day's Tr with --kitti-tr (its 12 numbers, or a calib.txt that has it: the odometry "
+            "calibration download's)")
+
+
+def tr_matrix(values, where: str) -> np.ndarray:
+    """A Tr's 12 numbers (row-major 3x4 [R|t]) as a 4x4 matrix, checked."""
+    values = np.asarray(values, dtype=np.float64).ravel()
+    if values.size != 12 or not np.all(np.isfinite(values)):
+        raise SourceError(f"{where}: Tr needs 12 numbers (a row-major 3x4 [R|t])")
+    tr = np.eye(4)
+    tr[:3] = values.reshape(3, 4)
+    return tr
+
+
 def read_tr(calib: Path) -> np.ndarray:
     """The 4x4 LiDAR-to-camera transform of calib.txt's Tr line."""
     if not calib.is_file():
         raise SourceError(f"{calib.parent}: no calib.txt beside the scans: KITTI's poses are the camera's and need its "
-                          "Tr (LiDAR to camera); or give LiDAR poses with --poses (voxtool odometry writes them)")
+                          f"Tr (LiDAR to camera); {WAYS_OUT.format(seq=calib.parent)}")
     for line in calib.read_text(errors="replace").splitlines():
         name, _, rest = line.partition(":")
         if name.strip() == "Tr":
@@ -62,13 +77,9 @@ def read_tr(calib: Path) -> np.ndarray:
                 values = np.array([float(v) for v in rest.split()])
             except ValueError:
                 values = np.empty(0)
-            if values.size != 12 or not np.all(np.isfinite(values)):
-                raise SourceError(f"{calib}: Tr needs 12 numbers (a row-major 3x4 [R|t])")
-            tr = np.eye(4)
-            tr[:3] = values.reshape(3, 4)
-            return tr
-    raise SourceError(f"{calib}: no Tr line (the LiDAR-to-camera transform KITTI's camera poses need; it is in the "
-                      "odometry calibration download's calib.txt); or give LiDAR poses with --poses")
+            return tr_matrix(values, str(calib))
+    raise SourceError(f"{calib}: no Tr line (the LiDAR-to-camera transform KITTI's camera poses need; the sequences "
+                      f"as SemanticKITTI samples publish them have none): {WAYS_OUT.format(seq=calib.parent)}")
 
 
 def _rows(path: Path, width: int, what: str) -> np.ndarray:
@@ -89,13 +100,13 @@ def pose_file(sequence: Path) -> Path | None:
     return None
 
 
-def lidar_poses(sequence: Path, frames: list[int]) -> list[Pose]:
-    """The LiDAR's pose for each frame number: Tr^-1 * P_camera * Tr."""
+def lidar_poses(sequence: Path, frames: list[int], tr: np.ndarray | None = None) -> list[Pose]:
+    """The LiDAR's pose for each frame number: Tr^-1 * P_camera * Tr (`tr`: 4x4, else calib.txt's)."""
     found = pose_file(sequence)
     if found is None:
         raise SourceError(f"{sequence}: no poses.txt (nor ../../poses/{sequence.name}.txt): the scans have no poses; "
                           f"estimate them with `voxtool odometry {sequence} -o poses.txt`, then --poses poses.txt")
-    tr = read_tr(sequence / "calib.txt")
+    tr = read_tr(sequence / "calib.txt") if tr is None else tr
     rows = _rows(found, 12, "KITTI poses")
     if max(frames) >= rows.shape[0]:
         raise SourceError(f"{found}: {rows.shape[0]} poses, but the scans go up to frame {max(frames)}")
