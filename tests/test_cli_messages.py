@@ -227,3 +227,8 @@ def test_encode_prints_words_not_json_keys(tmp_path):
     code, text, _ = run("encode", "--sample", "-o", tmp_path / "r2.mcap", "--stop", "2", "--max-range", "20", "--json")
     report = json.loads(text)
     assert f"{report['bytes']:,} bytes" in out and f"{report['packets']:,}" in out
+
+
+def test_build_without_output_says_the_map_was_not_written(tmp_path):
+    code, out, err = run("build", "--sample", "--no-progress")
+    assert code == 0 and "written             nothing: no -o given, the map was built and measured only" in out, out

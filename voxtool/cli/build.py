@@ -138,5 +138,5 @@ def build(sources, sample, output, origin, decay, share, ring, workers, schedule
         del result["per_scan"]
         rows.append(("plot", str(plot)))
     if output is None:  # measured only: say so, or a forgotten -o looks like a map written somewhere
-        click.echo("voxtool: warning: no -o given: the map was built and measured, not written", err=True)
+        rows.append(("written", "nothing: no -o given, the map was built and measured only"))
     emit(result, as_json, rows, written=output)
