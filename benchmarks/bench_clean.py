@@ -103,6 +103,8 @@ class RealScene:
     every: int = 1  # every n-th scan
     voxel: float | None = None  # one point per voxel of this size (a keyframe dump)
     pose_error: bool = False  # synthetic.PoseError on every scan (after the movers are traced)
+    drift: bool = False  # ... and the drift of a real INS (PoseError.drifting: the same way for seconds)
+    odometry: bool = False  # the scans posed by `voxtool odometry` (a driver's dump without poses)
 
 
 REAL_SCENES = [
@@ -121,6 +123,14 @@ REAL_SCENES = [
     RealScene("KITTI 00, pose error", "kitti/00", movers=False, pose_error=True),
     RealScene("KITTI 05, pose error", "kitti/05", movers=False, pose_error=True),
     RealScene("KITTI 05 + movers, exact poses", "kitti/05"),
+    # the error of a real INS: it drifts the same way for seconds (35 cm and 0.4 degrees in 6 s)
+    RealScene("KITTI 00 + movers, drifting poses", "kitti/00", pose_error=True, drift=True),
+    RealScene("KITTI 05 + movers, drifting poses", "kitti/05", pose_error=True, drift=True),
+    RealScene("KITTI 05, drifting poses", "kitti/05", movers=False, pose_error=True, drift=True),
+    # a KITTI raw PCD dump as drivers write it (no poses; one (0, 0, 0) "no return" a scan; returns
+    # metres under the road), posed by voxtool odometry
+    RealScene("Udacity dump + movers, odometry", "udacity", odometry=True),
+    RealScene("Udacity dump, odometry", "udacity", movers=False, odometry=True),
 ]
 KITTI = Path(__file__).resolve().parents[1] / ".fetched" / "mini_kitti" / "sequences"  # scripts/fetch_samples.py
 
@@ -130,6 +140,8 @@ def scene_source(data: Path, scene: RealScene) -> tuple[Path, Path | None]:
     if scene.dataset.startswith("kitti/"):
         seq = KITTI / scene.dataset.split("/")[1]
         return seq, seq / "labels"
+    if scene.dataset == "udacity":
+        return KITTI.parents[1] / "udacity_data_1", None
     return data / scene.dataset / "pcd", None
 
 
@@ -143,13 +155,21 @@ def real_scene(src: Path, out: Path, scene: RealScene, labels: Path | None = Non
     from voxtool.sources import SourceOptions, open_source
     from voxtool.synthetic import PoseError, ground_height, insert_movers, traffic
 
-    options = SourceOptions(every=scene.every, truth=str(labels) if labels else None)
+    poses = None
+    if scene.odometry:
+        from voxtool.odometry import OdometryParams, estimate_poses, write_pose_file
+
+        result = estimate_poses(src, SourceOptions(), OdometryParams(), progress=False)
+        poses = str(out.parent / f"{out.name}_odometry.txt")
+        write_pose_file(poses, result["poses"], result["stamps_ns"])
+    options = SourceOptions(every=scene.every, truth=str(labels) if labels else None, poses=poses)
     scans = list(open_source(src, options).scans)
     stamps = np.array([s.stamp_ns for s in scans], dtype=np.float64) / 1e9
     times = stamps - stamps[0] if np.any(stamps) else np.arange(len(scans)) * scene.every / 10.0
     origins = np.array([s.origin for s in scans], dtype=np.float64)
     boxes = traffic(origins, times, ground_height(scans[0].points, origins[0])) if scene.movers else []
     rng = np.random.default_rng(7)
+    error = PoseError.drifting() if scene.drift else PoseError()
     out.mkdir(parents=True, exist_ok=True)
     truths, poses = [], []
     for i, scan in enumerate(scans):
@@ -161,7 +181,7 @@ def real_scene(src: Path, out: Path, scene: RealScene, labels: Path | None = Non
         points, dynamic = insert_movers(points, scan.origin, float(times[i]), boxes)
         origin = origins[i]
         if scene.pose_error:
-            points, origin = PoseError().apply(points, origin, rng)
+            points, origin = error.apply(points, origin, rng, float(times[i]))
         local = (points.astype(np.float64) - origin).astype(np.float32)
         (out / f"{i:06d}.pcd").write_bytes(pcd_header(len(local), False, viewpoint=(*origin, 1.0, 0.0, 0.0, 0.0))
                                            + pcd_rows(local, None))
@@ -171,7 +191,8 @@ def real_scene(src: Path, out: Path, scene: RealScene, labels: Path | None = Non
     return np.concatenate(truths)
 
 
-def real_movers(data: Path, tmp: Path, out: Path, params, repeat: int) -> tuple[list[dict], list[dict]]:
+def real_movers(data: Path, tmp: Path, out: Path, params, repeat: int,
+                words: list[str] | None = None) -> tuple[list[dict], list[dict]]:
     """REAL_SCENES: both tools at their defaults, scored against the ray-traced truth; then the
     ground table: voxtool with the ground judged as any surface (--ground-band -1) against the
     default, and what judging the ground costs a scan."""
@@ -185,6 +206,8 @@ def real_movers(data: Path, tmp: Path, out: Path, params, repeat: int) -> tuple[
           f"{'time':>7} | {'DUFOMap SA / DA / AA':>22} {'time':>7}")
     no_ground = dataclasses.replace(params, ground_band=-1.0)
     for scene in REAL_SCENES:
+        if words and not any(w in scene.name for w in words):
+            continue
         src, labels = scene_source(data, scene)
         if not src.is_dir():
             continue
@@ -226,6 +249,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2, help="runs of each tool per input (alternating); best time kept")
     ap.add_argument("--out", default="bench-results/clean.json")
     ap.add_argument("--only", choices=["real-movers"], help="only the real scans with ray-traced movers")
+    ap.add_argument("--scenes", nargs="*", default=None, metavar="WORD",
+                    help="only the real scenes whose names hold one of these words (e.g. drifting Udacity)")
     args = ap.parse_args()
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -238,7 +263,7 @@ def main() -> None:
         write_pcd_scans(street(2), Path(tmp) / "warm")
         run_voxtool(Path(tmp) / "warm", params)
         run_dufomap(Path(tmp) / "warm", params)
-        real_rows, ground_rows = real_movers(Path(args.data), Path(tmp), out, params, args.repeat)
+        real_rows, ground_rows = real_movers(Path(args.data), Path(tmp), out, params, args.repeat, args.scenes)
         rows += real_rows
         if args.only == "real-movers":
             out.write_text(json.dumps({"params": params.__dict__, "rows": rows, "ground": ground_rows}, indent=2))

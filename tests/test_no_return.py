@@ -100,3 +100,18 @@ def test_the_vehicle_s_own_returns_go_with_ego_box(scans_with_and_without, tmp_p
     code, _, err = cli("build", body, "-o", tmp_path / "d.vxm", "--ego-box", "1,2,3")
     assert code == 2 and err.strip().splitlines()[-1].startswith("voxtool: error: --ego-box 1,2,3: give six numbers")
     assert not (tmp_path / "d.vxm").exists()
+
+
+def test_odometry_on_scans_without_poses_does_not_advise_itself(scans_with_and_without, tmp_path):
+    """A driver's dump has no poses: that is what odometry is for, so its own read of the source's
+    poses (to compare, where there are some) must not warn 'run voxtool odometry'."""
+    pytest.importorskip("kiss_icp")
+    plain, _, n = scans_with_and_without
+    dump = tmp_path / "dump"
+    dump.mkdir()
+    for f in sorted(plain.glob("*.pcd")):  # the same sensor-frame points, no VIEWPOINT, no poses.txt
+        points = read_pcd(f).xyz.astype(np.float32)
+        (dump / f.name).write_bytes(pcd_header(len(points), False) + pcd_rows(points, None))
+    code, text, err = cli("odometry", dump, "-o", tmp_path / "p.txt", "--json", "--no-progress")
+    assert code == 0 and err == "", err
+    assert json.loads(text)["scans"] == n

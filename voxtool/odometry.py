@@ -102,11 +102,15 @@ def against_source_poses(source, options: SourceOptions, estimated: np.ndarray, 
     """How far the odometry's sensor positions are from the source's own poses, where it has
     them (a KITTI poses.txt, PCD VIEWPOINTs, a pose file): ATE RMSE and largest error after a
     rigid alignment, and the end's drift in % of the path. None where the source has none."""
-    from voxtool.errors import SourceError
+    import warnings
+
+    from voxtool.errors import SourceError, VoxtoolWarning
 
     try:
-        truth = np.array([scan.origin for scan in open_source(source, replace(options, origin=None)).scans],
-                         dtype=np.float64)
+        with warnings.catch_warnings():  # what reading its poses says (no poses: run odometry) is not news here
+            warnings.simplefilter("ignore", VoxtoolWarning)
+            truth = np.array([scan.origin for scan in open_source(source, replace(options, origin=None)).scans],
+                             dtype=np.float64)
     except SourceError:
         return None  # the source cannot pose its scans (what odometry is for)
     if truth.shape[0] != estimated.shape[0] or truth.shape[0] < 3 or np.ptp(truth, axis=0).max() < 1e-6:
