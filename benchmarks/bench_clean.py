@@ -128,9 +128,10 @@ REAL_SCENES = [
     RealScene("KITTI 05 + movers, drifting poses", "kitti/05", pose_error=True, drift=True),
     RealScene("KITTI 05, drifting poses", "kitti/05", movers=False, pose_error=True, drift=True),
     # a KITTI raw PCD dump as drivers write it (no poses; one (0, 0, 0) "no return" a scan; returns
-    # metres under the road), posed by voxtool odometry
+    # metres under the road), posed by voxtool odometry. Its real traffic is not labelled (a vehicle
+    # 2-3 m to the left drives along with the car): what clean removes of it counts against SA
     RealScene("Udacity dump + movers, odometry", "udacity", odometry=True),
-    RealScene("Udacity dump, odometry", "udacity", movers=False, odometry=True),
+    RealScene("Udacity dump, odometry (traffic)", "udacity", movers=False, odometry=True),
 ]
 KITTI = Path(__file__).resolve().parents[1] / ".fetched" / "mini_kitti" / "sequences"  # scripts/fetch_samples.py
 

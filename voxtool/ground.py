@@ -205,6 +205,16 @@ def _supported_floor(codes, column, x0, y0, rows, cols, support, lowest):
     return floor, which
 
 
+def _unique_codes(codes: np.ndarray, weights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The sorted unique codes and how often each was hit: its repeats, or its weights summed."""
+    if weights is None:
+        return np.unique(codes, return_counts=True)
+    order = np.argsort(codes, kind="stable")
+    codes = codes[order]
+    starts = np.flatnonzero(np.r_[True, codes[1:] != codes[:-1]])
+    return codes[starts], np.add.reduceat(np.asarray(weights, dtype=np.float64)[order], starts)
+
+
 def _typical_floor(floor: np.ndarray, block: int) -> np.ndarray:
     """Each column's typical floor around it: the median of the median floors of the 3 x 3 blocks
     of `block` x `block` columns around its own (NONE-free; NONE where none has a floor). A median,
@@ -264,8 +274,7 @@ def ground_of(keys: np.ndarray, resolution: float, params: GroundParams = Ground
     cols, rows = int(keys[:, 0].max()) // column - x0 + 1, int(keys[:, 1].max()) // column - y0 + 1
     if rows * cols > 1 << 28:
         raise ParameterError(f"the ground grid would have {cols} x {rows} columns; --crop the map first")
-    codes, inverse = np.unique(keys[:, 0] << 32 | keys[:, 1] << 16 | keys[:, 2], return_inverse=True)
-    hits = np.bincount(inverse.ravel(), weights=None if weights is None else weights, minlength=codes.shape[0])
+    codes, hits = _unique_codes(keys[:, 0] << 32 | keys[:, 1] << 16 | keys[:, 2], weights)
     floor, which = _supported_floor(codes, column, x0, y0, rows, cols, params.support, np.zeros((rows, cols), np.int32))
     if params.pit_block_m > 0:
         lowest_voxel = _supported_floor(codes, column, x0, y0, rows, cols, 0, np.zeros((rows, cols), np.int32))[0]
