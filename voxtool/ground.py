@@ -39,7 +39,8 @@ class GroundParams:
     step_m: float = 0.3  # the highest kerb or step that is still ground (metres)
     fill_m: float = 3.0  # how far a column without ground looks for ground around it (metres)
     support: int = 2  # occupied voxels beside a floor voxel that make it a surface (0: the lowest voxel, whatever)
-    pit_block_m: float = 2.0  # the typical floor around a column: the median floors of 3 x 3 blocks this wide (0: no pits)
+    pit_block_m: float = 2.0  # the typical floor around a column: over 3 x 3 blocks this wide (0: no pits) ...
+    pit_quantile: float = 0.25  # ... the median of their floors' lower quartiles
     pit_depth_m: float = 1.0  # a floor deeper than this under the typical floor around it is not the ground ...
     pit_hits: float = 3.5  # ... where their voxel was hit at most this often (the road is hit again and again)
 
@@ -215,11 +216,12 @@ def _unique_codes(codes: np.ndarray, weights: np.ndarray | None) -> tuple[np.nda
     return codes[starts], np.add.reduceat(np.asarray(weights, dtype=np.float64)[order], starts)
 
 
-def _typical_floor(floor: np.ndarray, block: int) -> np.ndarray:
-    """Each column's typical floor around it: the median of the median floors of the 3 x 3 blocks
-    of `block` x `block` columns around its own (NONE-free; NONE where none has a floor). A median,
-    not a closing: a closing's maximum takes a crown over ground that sparse points left unseen in a
-    few columns, and a reflection patch a few columns wide moves no median."""
+def _typical_floor(floor: np.ndarray, block: int, quantile: float) -> np.ndarray:
+    """Each column's typical floor around it: the median of the `quantile` floors of the 3 x 3
+    blocks of `block` x `block` columns around its own (NONE-free; NONE where none has a floor).
+    Quantiles, not a closing: a closing's maximum takes a crown over ground that sparse points left
+    unseen in a few columns, and a reflection patch a few columns wide moves no low quantile of a
+    block; a low one, since far from the sensor most columns hold walls and crowns, few the ground."""
     rows, cols = floor.shape
     br, bc = (rows + block - 1) // block, (cols + block - 1) // block
     r, c = np.nonzero(floor != NONE)
@@ -230,7 +232,7 @@ def _typical_floor(floor: np.ndarray, block: int) -> np.ndarray:
     starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
     counts = np.diff(np.r_[starts, ids.shape[0]])
     medians = np.full(br * bc, np.nan)
-    medians[ids[starts]] = z[starts + counts // 2]
+    medians[ids[starts]] = z[starts + (counts * quantile).astype(np.int64)]
     padded = np.pad(medians.reshape(br, bc), 1, constant_values=np.nan)
     around = np.stack([padded[i:i + br, j:j + bc] for i in range(3) for j in range(3)])
     with warnings.catch_warnings():
@@ -275,10 +277,15 @@ def ground_of(keys: np.ndarray, resolution: float, params: GroundParams = Ground
     if rows * cols > 1 << 28:
         raise ParameterError(f"the ground grid would have {cols} x {rows} columns; --crop the map first")
     codes, hits = _unique_codes(keys[:, 0] << 32 | keys[:, 1] << 16 | keys[:, 2], weights)
-    floor, which = _supported_floor(codes, column, x0, y0, rows, cols, params.support, np.zeros((rows, cols), np.int32))
+    nowhere = np.zeros((rows, cols), np.int32)
+    floor, which = _supported_floor(codes, column, x0, y0, rows, cols, params.support, nowhere)
+    lowest_voxel, lowest_which = _supported_floor(codes, column, x0, y0, rows, cols, 0, nowhere)
+    # a column with no surface (far road: one ring's points, a voxel or more apart) keeps its lowest voxel
+    alone = (floor == NONE) & (lowest_voxel != NONE)
+    floor[alone], which[alone] = lowest_voxel[alone], lowest_which[alone]
     if params.pit_block_m > 0:
-        lowest_voxel = _supported_floor(codes, column, x0, y0, rows, cols, 0, np.zeros((rows, cols), np.int32))[0]
-        reference = _typical_floor(lowest_voxel, max(1, int(round(params.pit_block_m / (resolution * column)))))
+        reference = _typical_floor(lowest_voxel, max(1, int(round(params.pit_block_m / (resolution * column)))),
+                                   params.pit_quantile)
         depth = int(round(params.pit_depth_m / resolution))
         pits = (floor != NONE) & (reference != NONE) & (reference - floor > depth)
         pits &= hits[np.maximum(which, 0)] <= params.pit_hits  # a surface hit again and again is ground in a pit
