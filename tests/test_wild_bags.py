@@ -328,6 +328,7 @@ def test_scans_before_the_first_transform_are_left_out_counted_and_warned(tmp_pa
     ("only odom", dict(tf="none", odom=True), "pose them with --pose-topic /odom, or --world-frame lidar"),
     ("frame missing", dict(tf_child="base_laser"), "no transform reaches the scan frame 'lidar' (its /tf frames: "
                                                    "base_laser, odom)"),
+    ("empty frame id", dict(tf="none", scan_frame=""), "pose them with --world-frame '' (a static sensor"),
 ])
 def test_a_bag_nothing_poses_is_one_line_naming_what_would(tmp_path, scans, case, options, says):
     path = write_wild_bag(tmp_path / "b.bag", scans, **options)

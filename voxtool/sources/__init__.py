@@ -406,7 +406,7 @@ def _log_stream(kind: str, path: Path, src, options: SourceOptions) -> ScanStrea
 
             from voxtool.errors import VoxtoolWarning
 
-            warnings.warn(f"{path}: {lost}; the map holds the scans that could be read", VoxtoolWarning, stacklevel=2)
+            warnings.warn(f"{path}: {lost}; the {read} whole scans before it were read", VoxtoolWarning, stacklevel=2)
 
     count = _selected(path, src.count, options) if src.count is not None else None
     return ScanStream(kind, path, count, scans(), bad)

@@ -4,6 +4,7 @@ logs (MCAP files, ROS 1 and ROS 2 bags): they differ in how they read messages, 
 
 from __future__ import annotations
 
+import shlex
 from collections import deque
 
 import numpy as np
@@ -59,7 +60,7 @@ def pose_hint(where: str, frame: str, topics: dict[str, str]) -> str:
     --pose-topic), a static sensor's own frame (--world-frame), or LiDAR odometry's poses."""
     candidates = sorted(t for t, s in topics.items() if s in POSE_TYPES)
     options = [f"--pose-topic {t}" for t in candidates[:3]]
-    options.append(f"--world-frame {frame} (a static sensor: the map in its own frame)")
+    options.append(f"--world-frame {shlex.quote(frame)} (a static sensor: the map in its own frame)")  # '' if empty
     return ("pose them with " + ", or ".join(options) + f"; or estimate them: `voxtool odometry {where} -o poses.txt`, "
             "then --poses poses.txt")
 
