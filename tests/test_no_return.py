@@ -115,3 +115,31 @@ def test_odometry_on_scans_without_poses_does_not_advise_itself(scans_with_and_w
     code, text, err = cli("odometry", dump, "-o", tmp_path / "p.txt", "--json", "--no-progress")
     assert code == 0 and err == "", err
     assert json.loads(text)["scans"] == n
+
+
+def test_a_standing_sensor_s_jitter_adds_no_path():
+    from voxtool.odometry import path_length
+
+    rng = np.random.default_rng(1)
+    standing = rng.normal(0.0, 0.002, (500, 3))  # 2 mm of registration noise a scan, 500 scans
+    moved = np.vstack([standing, standing[-1] + [1.0, 0.0, 0.0]])
+    naive = np.linalg.norm(np.diff(moved, axis=0), axis=1).sum()
+    assert naive > 2.0 and 0.95 < path_length(moved, 0.05) < 1.05
+
+
+def test_odometry_with_almost_nothing_to_register_says_it_may_have_diverged(tmp_path):
+    """Scans of a dozen points each (a sensor facing a wall, most beams without return): the run
+    is flagged on one warning line and in --json, not reported as a success."""
+    pytest.importorskip("kiss_icp")
+    rng = np.random.default_rng(2)
+    dump = tmp_path / "dump"
+    dump.mkdir()
+    for i in range(12):
+        points = np.c_[np.full(12, 0.3), rng.uniform(-0.2, 0.2, (12, 2))].astype(np.float32)
+        (dump / f"{i:03d}.pcd").write_bytes(pcd_header(len(points), False) + pcd_rows(points, None))
+    code, text, err = cli("odometry", dump, "-o", tmp_path / "p.txt", "--json", "--no-progress")
+    assert code == 0, err
+    check = json.loads(text)["plausibility"]
+    assert check["suspect"] and check["sparse_scans"] == 12 and check["first_sparse_scan"] == 0
+    lines = [ln for ln in err.splitlines() if "may have diverged" in ln]
+    assert len(lines) == 1 and "12 scans with fewer than 30 points to register" in lines[0], err

@@ -499,32 +499,19 @@ def test_logs_of_lidar_packets_are_one_line_that_says_to_decode_them(tmp_path, n
         assert "turn them into PointCloud2 with that driver" in line
 
 
-def test_johnny5_walls_lie_where_the_authors_gmapping_map_has_them(shared_data):
-    """The authors' own gmapping map of johnny5_data.bag (its PGM and YAML, ../shared/data/bags):
-    most of its wall cells lie within 0.2 m of a wall voxtool builds from the same bag's
-    odometry /tf at 0.05 m (gmapping also corrects the odometry's drift over the 124 s run;
-    voxtool does not). Both grids share one lattice (cell centres at 0.025 + k 0.05 m), so the
-    distances are whole cells."""
+def _gmapping_share(folder, backend) -> tuple[int, float]:
+    """(the authors' gmapping wall cells, the share of them within 0.2 m of a wall of `backend`'s
+    map): both grids on one lattice (cell centres at 0.025 + k 0.05 m), so distances are whole cells."""
     from PIL import Image
 
-    from voxtool.config import MapParams, SensorModel
     from voxtool.keys import TREE_MAX_VAL, expand_leaves, morton_decode
-    from voxtool.maps import make_backend
-    from voxtool.pipeline import build
-    from voxtool.sources import open_source
 
-    folder = shared_data / "bags"
-    if not (folder / "johnny5_gmapping_map.pgm").is_file():
-        pytest.skip("johnny5's gmapping map absent")
     meta = (folder / "johnny5_gmapping_map.yaml").read_text()
     resolution = float(re.search(r"resolution: (\S+)", meta).group(1))
     x0, y0 = (float(v) for v in re.search(r"origin: \[([^,]+),([^,]+),", meta).groups())
     theirs = (255 - np.asarray(Image.open(folder / "johnny5_gmapping_map.pgm"), dtype=np.float64)) / 255 > 0.65
     rows, cols = theirs.shape
-    m = make_backend("octree", MapParams(resolution=resolution), SensorModel())
-    with pytest.warns(UserWarning, match="before the first transform"):
-        build(open_source(folder / "johnny5_data.bag"), m, progress=False)
-    leaves = m.leaves()
+    leaves = backend.leaves()
     occupied = leaves.values > 0
     keys = morton_decode(expand_leaves(leaves.codes[occupied], leaves.depths[occupied])).astype(np.int64)
     col = keys[:, 0] - TREE_MAX_VAL - round(x0 / resolution)  # the gmapping cell of each voxel column
@@ -539,5 +526,58 @@ def test_johnny5_walls_lie_where_the_authors_gmapping_map_has_them(shared_data):
         for dc in range(-reach, reach + 1):
             if dr * dr + dc * dc <= reach * reach:
                 near |= padded[reach + dr:reach + dr + rows, reach + dc:reach + dc + cols]
-    share = near[theirs].mean()
-    assert theirs.sum() > 500 and share >= 0.85, share
+    return int(theirs.sum()), float(near[theirs].mean())
+
+
+def test_johnny5_walls_lie_where_the_authors_gmapping_map_has_them(shared_data):
+    """The authors' own gmapping map of johnny5_data.bag (its PGM and YAML, ../shared/data/bags):
+    most of its wall cells lie within 0.2 m of a wall voxtool builds from the same bag's
+    odometry /tf at 0.05 m (gmapping also corrects the odometry's drift over the 124 s run;
+    voxtool does not)."""
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.maps import make_backend
+    from voxtool.pipeline import build
+    from voxtool.sources import open_source
+
+    folder = shared_data / "bags"
+    if not (folder / "johnny5_gmapping_map.pgm").is_file():
+        pytest.skip("johnny5's gmapping map absent")
+    m = make_backend("octree", MapParams(resolution=0.05), SensorModel())
+    with pytest.warns(UserWarning, match="before the first transform"):
+        build(open_source(folder / "johnny5_data.bag"), m, progress=False)
+    walls, share = _gmapping_share(folder, m)
+    assert walls > 500 and share >= 0.85, share
+
+
+def test_johnny5_odometry_at_its_defaults_maps_the_walls_gmapping_has(shared_data, tmp_path):
+    """`voxtool odometry` at its defaults on johnny5's 2D LaserScans (a 5 m scanner: its range_max,
+    registered in the plane): the path is the wheel odometry's 11.6 m (66 m when KISS-ICP's 100 m
+    range made a 1 m voxel), and the map from its poses, after one rigid alignment to the /tf
+    trajectory (the odometry's frame is the first scan's), holds gmapping's walls as well as the
+    map from /tf does."""
+    pytest.importorskip("kiss_icp")
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.maps import make_backend
+    from voxtool.odometry import OdometryParams, estimate_poses, rigid_fit, write_pose_file
+    from voxtool.pipeline import build
+    from voxtool.sources import SourceOptions, open_source
+
+    folder = shared_data / "bags"
+    if not (folder / "johnny5_gmapping_map.pgm").is_file():
+        pytest.skip("johnny5's gmapping map absent")
+    bag = folder / "johnny5_data.bag"
+    result = estimate_poses(bag, SourceOptions(), OdometryParams(), progress=False)
+    figures = result["figures"]
+    assert figures["params"]["planar"] and figures["params"]["max_range"] == pytest.approx(5.0)
+    assert not figures["plausibility"]["suspect"] and 10.5 < figures["path_m"] < 13.0, figures
+    with pytest.warns(UserWarning, match="before the first transform"):
+        by_tf = {s.index: s.origin.astype(np.float64) for s in open_source(bag).scans}
+    ours = result["poses"]
+    index = np.array(sorted(by_tf))
+    r, t = rigid_fit(ours[index, :3, 3], np.array([by_tf[i] for i in index]))
+    aligned = np.array([np.block([[r, t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]) @ p for p in ours])
+    write_pose_file(tmp_path / "poses.txt", aligned, result["stamps_ns"])
+    m = make_backend("octree", MapParams(resolution=0.05), SensorModel())
+    build(open_source(bag, SourceOptions(poses=str(tmp_path / "poses.txt"))), m, progress=False)
+    walls, share = _gmapping_share(folder, m)
+    assert walls > 500 and share >= 0.90, share

@@ -25,48 +25,152 @@ from voxtool.sources.scan import add_drop_counts
 EXTRA = f"pip install '{DISTRIBUTION}[odometry]' (KISS-ICP LiDAR odometry)"
 
 
+PEEK_SCANS = 10  # scans read before registering: what the sensor's range and kind are
+MIN_POINTS = 30  # a scan with fewer points left to register than this is degenerate (a wall, no returns)
+SPEED_LIMIT = {True: 5.0, False: 60.0}  # m/s: faster is implausible for a planar (indoor) scanner / a 3D one
+
+
 @dataclass(frozen=True)
 class OdometryParams:
-    max_range: float = 100.0  # metres: KISS-ICP's data.max_range (points beyond are not registered)
+    # metres: KISS-ICP's data.max_range (points beyond are not registered); None: from the data,
+    # a LaserScan's range_max, else the 99.5th percentile range of the first scans. Its local map
+    # voxel is a hundredth of it: 1 m for 100 m, far too coarse for a 3.5-12 m indoor scanner
+    max_range: float | None = None
     min_range: float = 0.0
     voxel_size: float | None = None  # KISS-ICP's local map voxel; None: max_range / 100, its default
+    planar: bool | None = None  # register in the plane (z, roll, pitch held at 0); None: 2D scans (every z 0)
 
     def __post_init__(self) -> None:
-        if not (self.max_range > 0 and np.isfinite(self.max_range)):
+        if self.max_range is not None and not (self.max_range > 0 and np.isfinite(self.max_range)):
             raise ParameterError(f"--max-range {self.max_range}: odometry needs a finite range > 0 (metres)")
         if self.voxel_size is not None and not self.voxel_size > 0:
             raise ParameterError(f"--voxel-size {self.voxel_size}: give a size > 0 (metres)")
 
 
-def _kiss_icp(params: OdometryParams):
+def _import_kiss_icp():
     try:
         from kiss_icp.config import KISSConfig
         from kiss_icp.kiss_icp import KissICP
     except ImportError:
         raise ParameterError(f"voxtool odometry needs KISS-ICP: {EXTRA}") from None
+    return KISSConfig, KissICP
+
+
+def _kiss_icp(max_range: float, min_range: float, voxel_size: float, planar: bool):
+    KISSConfig, KissICP = _import_kiss_icp()
     config = KISSConfig()
-    config.data.max_range = params.max_range
-    config.data.min_range = params.min_range
+    config.data.max_range = max_range
+    config.data.min_range = min_range
     config.data.deskew = False  # scans carry no per-point times here
-    config.mapping.voxel_size = params.voxel_size or params.max_range / 100.0
-    return KissICP(config)
+    config.mapping.voxel_size = voxel_size
+    if not planar:
+        return KissICP(config)
+
+    class PlanarKissICP(KissICP):
+        """KISS-ICP's register_frame with each pose held in the plane: a 2D scan constrains x, y
+        and yaw only, and ICP left free drifts in z, roll and pitch."""
+
+        def register_frame(self, frame, timestamps):
+            frame = self.preprocessor.preprocess(frame, timestamps, self.last_delta)
+            source, frame_downsample = self.voxelize(frame)
+            sigma = self.adaptive_threshold.get_threshold()
+            initial_guess = self.last_pose @ self.last_delta
+            new_pose = in_plane(self.registration.align_points_to_map(
+                points=source, voxel_map=self.local_map, initial_guess=initial_guess,
+                max_correspondance_distance=3 * sigma, kernel=sigma))
+            self.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
+            self.local_map.update(frame_downsample, new_pose)
+            self.last_delta = np.linalg.inv(self.last_pose) @ new_pose
+            self.last_pose = new_pose
+            return frame, source
+
+    return PlanarKissICP(config)
+
+
+def in_plane(pose: np.ndarray) -> np.ndarray:
+    """A 4x4 pose projected to the plane: its yaw and x, y kept; z, roll and pitch 0."""
+    yaw = np.arctan2(pose[1, 0], pose[0, 0])
+    out = np.eye(4)
+    out[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    out[:2, 3] = pose[:2, 3]
+    return out
+
+
+def sensor_range(scans: list) -> float:
+    """The range to register within, from the first scans (sensor frame): a LaserScan's range_max,
+    else the 99.5th percentile of the points' ranges, rounded up to 0.5 m (at least 1 m)."""
+    declared = [s.miss_range for s in scans if s.miss_range > 0]
+    if declared:
+        return float(max(declared))
+    ranges = np.concatenate([np.linalg.norm(s.points.astype(np.float64), axis=1) for s in scans] or [np.zeros(0)])
+    if ranges.size == 0:
+        return 100.0
+    return max(1.0, float(np.ceil(np.percentile(ranges, 99.5) * 2.0) / 2.0))
+
+
+def path_length(positions: np.ndarray, step: float) -> float:
+    """The distance travelled, counted from one kept position to the next once they are `step`
+    apart: a standing sensor's jitter (millimetres a scan, hundreds of scans) adds nothing."""
+    total, anchor = 0.0, positions[0] if len(positions) else None
+    for p in positions[1:]:
+        d = float(np.linalg.norm(p - anchor))
+        if d >= step:
+            total += d
+            anchor = p
+    return total
+
+
+def plausibility(positions: np.ndarray, stamps_ns: np.ndarray, registered: np.ndarray, planar: bool,
+                 max_range: float) -> dict:
+    """What says a run diverged or had too little to go on: steps faster than a sensor of its
+    kind moves (or, without times, longer than a quarter of its range), and scans with fewer
+    than MIN_POINTS points to register."""
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    dt = np.diff(stamps_ns.astype(np.float64)) / 1e9
+    timed = bool(len(dt)) and bool(np.all(dt > 0))
+    limit = SPEED_LIMIT[planar]
+    if timed:
+        speeds = steps / dt
+        bad = np.flatnonzero(speeds > limit)
+        worst = float(speeds.max()) if len(speeds) else 0.0
+    else:
+        bad = np.flatnonzero(steps > max_range / 4.0)
+        worst = float(steps.max()) if len(steps) else 0.0
+    sparse = np.flatnonzero(registered < MIN_POINTS)
+    return {"implausible_steps": int(bad.size), "first_implausible_scan": int(bad[0] + 1) if bad.size else None,
+            "max_speed_m_s" if timed else "max_step_m": round(worst, 3),
+            "limit": f"{limit} m/s" if timed else f"{max_range / 4.0:g} m a scan",
+            "sparse_scans": int(sparse.size), "first_sparse_scan": int(sparse[0]) if sparse.size else None,
+            "suspect": bool(bad.size or sparse.size)}
 
 
 def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: OdometryParams,
                    progress: bool | None = None) -> dict:
     """Register every scan of `source` in its sensor frame; returns the poses (4x4, the first
     scan's frame), the scans' stamps (ns, 0 where unknown), and figures."""
+    import warnings
+    from itertools import chain, islice
+
+    from voxtool.errors import VoxtoolWarning
     from voxtool.progress import track
 
-    odometry = _kiss_icp(params)
+    _import_kiss_icp()  # the extra's one line before any reading
     stream = open_source(source, replace(options, sensor_frame=True, origin=None))
-    poses, stamps, points, dropped = [], [], 0, {}
+    scans = iter(stream.scans)
+    first = list(islice(scans, PEEK_SCANS))
+    max_range = params.max_range or sensor_range(first)
+    planar = params.planar if params.planar is not None else bool(first) and all(
+        s.points.shape[0] == 0 or not np.any(s.points[:, 2]) for s in first)
+    voxel_size = params.voxel_size or max_range / 100.0
+    odometry = _kiss_icp(max_range, params.min_range, voxel_size, planar)
+    poses, stamps, points, dropped, registered = [], [], 0, {}, []
     t0 = time.perf_counter()
-    for scan in track(stream.scans, stream.count, "odometry", progress, unit="scan"):
+    for scan in track(chain(first, scans), stream.count, "odometry", progress, unit="scan"):
         cloud = scan.points.astype(np.float64)
-        odometry.register_frame(cloud, np.empty(0))
+        _, used = odometry.register_frame(cloud, np.empty(0))
         poses.append(odometry.last_pose.copy())
         stamps.append(scan.stamp_ns)
+        registered.append(len(used))
         points += cloud.shape[0]
         add_drop_counts(dropped, scan)
     seconds = time.perf_counter() - t0
@@ -77,13 +181,26 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
         # a pose file has one row per scan file: a skipped scan would shift every later row
         raise ParameterError(f"{source}: {len(skipped)} scans could not be read (first: {skipped[0]['reason']}); "
                              "a pose file needs a pose for every scan")
-    path_m = float(sum(np.linalg.norm(b[:3, 3] - a[:3, 3]) for a, b in zip(poses, poses[1:])))
-    against = against_source_poses(source, options, np.array([m[:3, 3] for m in poses]), path_m)
+    positions = np.array([m[:3, 3] for m in poses])
+    path_m = path_length(positions, voxel_size / 2.0)
+    check = plausibility(positions, np.array(stamps, dtype=np.int64), np.array(registered), planar, max_range)
+    if check["suspect"]:
+        said = []
+        if check["implausible_steps"]:
+            worst = (f"{check['max_speed_m_s']:.1f} m/s" if "max_speed_m_s" in check else f"{check['max_step_m']:.2f} m")
+            said.append(f"{check['implausible_steps']} steps beyond {check['limit']} (the worst {worst}; the "
+                        f"first at scan {check['first_implausible_scan']})")
+        if check["sparse_scans"]:
+            said.append(f"{check['sparse_scans']} scans with fewer than {MIN_POINTS} points to register (the first: "
+                        f"scan {check['first_sparse_scan']})")
+        warnings.warn(f"{source}: the odometry may have diverged: {'; '.join(said)}; check the poses (build a map "
+                      "and look) before trusting them", VoxtoolWarning, stacklevel=2)
+    against = against_source_poses(source, options, positions, path_m)
     return {"poses": np.array(poses), "stamps_ns": np.array(stamps, dtype=np.int64),
             "figures": {"source": str(source), "scans": len(poses), "points": points, **dropped, "path_m": round(path_m, 6),
-                        "against_source_poses": against,
-                        "params": {"max_range": params.max_range, "min_range": params.min_range,
-                                   "voxel_size": params.voxel_size or params.max_range / 100.0},
+                        "against_source_poses": against, "plausibility": check,
+                        "params": {"max_range": max_range, "max_range_from": "given" if params.max_range else "the data",
+                                   "min_range": params.min_range, "voxel_size": voxel_size, "planar": planar},
                         "timings_s": {"total": round(seconds, 6),
                                       "per_scan_ms": round(1000 * seconds / len(poses), 3)}}}
 

@@ -14,8 +14,12 @@ from voxtool.cli.common import dropped_text, ego_box_option, emit, handle_errors
 @click.option("--sample", is_flag=True, help="Use the small real sample shipped with voxtool as SOURCE.")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), metavar="POSES.txt",
               help="The pose file to write (atomically): TUM rows where the scans have times, KITTI rows otherwise.")
-@click.option("--max-range", default=100.0, show_default=True, type=float,
-              help="Points farther than this (metres) are not registered (KISS-ICP's max_range).")
+@click.option("--max-range", default=None, type=float,
+              help="Points farther than this (metres) are not registered (KISS-ICP's max_range; its local map's voxel "
+                   "is a hundredth of it). Default: from the data, a LaserScan's range_max, else the 99.5th percentile "
+                   "range of the first scans.")
+@click.option("--planar/--no-planar", default=None,
+              help="Register in the plane (z, roll and pitch held at 0). Default: when the scans are 2D (every z 0).")
 @click.option("--min-range", default=0.0, show_default=True, type=float,
               help="Points nearer than this (metres: the vehicle itself) are not registered.")
 @click.option("--voxel-size", default=None, type=float,
@@ -27,7 +31,8 @@ from voxtool.cli.common import dropped_text, ego_box_option, emit, handle_errors
 @click.option("--json", "as_json", is_flag=True, help="Print figures and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def odometry(source, sample, output, max_range, min_range, voxel_size, topic, ego_box, bad_scans, as_json, progress):
+def odometry(source, sample, output, max_range, planar, min_range, voxel_size, topic, ego_box, bad_scans, as_json,
+             progress):
     """Estimate the sensor's pose for every scan of SOURCE by LiDAR odometry (KISS-ICP), and write
     them as a pose file that `build`, `clean` and `eval` take with --poses.
 
@@ -39,7 +44,11 @@ def odometry(source, sample, output, max_range, min_range, voxel_size, topic, eg
     \b
     Examples:
       voxtool odometry scans/ -o poses.txt && voxtool build scans/ --poses poses.txt -o map.vxm
-      voxtool odometry sequences/00 -o odom.txt --max-range 80 --json"""
+      voxtool odometry sequences/00 -o odom.txt --max-range 80 --json
+      voxtool odometry robot.bag -o poses.txt    a 2D LaserScan log: its range_max, in the plane
+
+    A run that looks diverged (steps faster than the sensor moves, scans with almost nothing to
+    register) says so on one warning line and in --json's plausibility."""
     from voxtool.odometry import OdometryParams, estimate_poses, write_pose_file
     from voxtool.sources import SourceOptions
 
@@ -47,7 +56,7 @@ def odometry(source, sample, output, max_range, min_range, voxel_size, topic, eg
     from voxtool.atomic import check_writable
 
     check_writable(output)
-    params = OdometryParams(max_range=max_range, min_range=min_range, voxel_size=voxel_size)
+    params = OdometryParams(max_range=max_range, min_range=min_range, voxel_size=voxel_size, planar=planar)
     result = estimate_poses(source, SourceOptions(topic=topic, bad_scans=bad_scans,
                                                  ego_box=parse_box(ego_box, "--ego-box", "in the sensor's frame")),
                             params, progress)
@@ -56,6 +65,9 @@ def odometry(source, sample, output, max_range, min_range, voxel_size, topic, eg
     t = figures["timings_s"]
     rows = [("scans", f"{figures['scans']:,} ({figures['points']:,} points registered; {dropped_text(figures)})"),
             ("path", f"{figures['path_m']:.2f} m travelled (first scan's frame)"),
+            ("registered", f"within {figures['params']['max_range']:g} m ({figures['params']['max_range_from']}), "
+                           f"{figures['params']['voxel_size']:g} m voxels"
+                           + (", in the plane (2D scans)" if figures["params"]["planar"] else "")),
             ("format", "TUM (t x y z qx qy qz qw)" if kind == "tum" else "KITTI rows (the scans have no times)"),
             ("time", f"{t['total']:.2f} s, {t['per_scan_ms']:.1f} ms a scan")]
     a = figures.get("against_source_poses")
