@@ -36,10 +36,11 @@ def cloud(T, kind: str, pts, ns: int, frame: str = "lidar"):
         point_step=12, row_step=12 * len(pts), data=np.frombuffer(pts.tobytes(), dtype=np.uint8), is_dense=True)
 
 
-def laser(T, kind: str, ranges, angle_min: float, angle_inc: float, ns: int, frame: str = "lidar"):
+def laser(T, kind: str, ranges, angle_min: float, angle_inc: float, ns: int, frame: str = "lidar",
+          range_max: float = 30.0):
     return T["sensor_msgs/msg/LaserScan"](
         header=_header(T, kind, ns, frame), angle_min=angle_min, angle_max=angle_min + angle_inc * (len(ranges) - 1),
-        angle_increment=angle_inc, time_increment=0.0, scan_time=0.1, range_min=0.1, range_max=30.0,
+        angle_increment=angle_inc, time_increment=0.0, scan_time=0.1, range_min=0.1, range_max=range_max,
         ranges=np.asarray(ranges, dtype=np.float32), intensities=np.zeros(0, dtype=np.float32))
 
 
