@@ -182,7 +182,7 @@ def test_bag_chunks_are_decompressed_within_bounds(tmp_path):
     from scenes import box_scene, write_pcd, yaw_quat
 
     from voxtool.sources import open_source
-    from voxtool.sources.rosbag import BagBomb, bound_bag_chunks
+    from voxtool.sources.bag_limits import BagBomb, bound_bag_chunks
 
     bound_bag_chunks()
     from rosbags.rosbag1 import reader as ros1
@@ -226,7 +226,7 @@ def test_a_ros2_bag_compressed_per_message_is_bounded_too(tmp_path):
     from scenes import box_scene, yaw_quat
 
     from voxtool.sources import open_source
-    from voxtool.sources.rosbag import BagBomb, bound_bag_chunks
+    from voxtool.sources.bag_limits import BagBomb, bound_bag_chunks
 
     scans = [(pts, o, yaw_quat(y)) for pts, o, y in box_scene(3, 300, seed=3)]
     original = Writer.__init__

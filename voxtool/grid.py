@@ -57,13 +57,9 @@ def parse_z_range(text: str | None) -> tuple[float, float] | None:
 
 
 def project(leaves: Leaves, resolution: float, threshold_log: float,
-            z_range: tuple[float, float] | None = None, above_ground: tuple[float, float] | None = None) -> Grid2D:
-    """The 2D grid of the voxels whose centres lie in z_range (inclusive; None: all), or, with
-    `above_ground`, in that band above the ground under them (voxtool.ground)."""
-    if above_ground is not None:
-        from voxtool.ground import project_above_ground
-
-        return project_above_ground(leaves, resolution, threshold_log, above_ground)
+            z_range: tuple[float, float] | None = None) -> Grid2D:
+    """The 2D grid of the voxels whose centres lie in z_range (inclusive; None: all). Heights
+    above the ground: voxtool.ground.project_grid."""
     return project_sets(lambda: [(leaves, threshold_log)], resolution, z_range)
 
 

@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 from voxtool.errors import ParameterError
-from voxtool.grid import FREE, OCCUPIED, UNKNOWN, Grid2D, parse_range
+from voxtool.grid import FREE, OCCUPIED, UNKNOWN, Grid2D, parse_range, project
 from voxtool.keys import TREE_MAX_VAL, expand_leaves, morton_decode
 from voxtool.maps.base import Leaves
 
@@ -339,3 +339,12 @@ def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float
     cells[keys[inside, 1] - ground.y0, keys[inside, 0] - ground.x0] = OCCUPIED
     origin = ((ground.x0 - TREE_MAX_VAL) * resolution, (ground.y0 - TREE_MAX_VAL) * resolution)
     return Grid2D(cells, resolution, origin, None)
+
+
+def project_grid(leaves: Leaves, resolution: float, threshold_log: float, z_range: tuple[float, float] | None = None,
+                 above_ground: tuple[float, float] | None = None) -> Grid2D:
+    """The 2D grid of a map: what stands `above_ground` (MIN, MAX metres over the ground) where
+    given, else the voxels in z_range (voxtool.grid.project)."""
+    if above_ground is not None:
+        return project_above_ground(leaves, resolution, threshold_log, above_ground)
+    return project(leaves, resolution, threshold_log, z_range)

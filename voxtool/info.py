@@ -135,8 +135,9 @@ def _log_figures(kind: str, path: Path, topics: list[dict], topic: str, msgtype:
 
 
 def _describe_bag(path: Path, options: SourceOptions) -> dict:
+    from voxtool.sources.bag_limits import bag_errors
     from voxtool.sources.ros_msgs import SCAN_TYPES
-    from voxtool.sources.rosbag import BagCloudSource, bag_errors, open_bag
+    from voxtool.sources.rosbag import BagCloudSource, open_bag
 
     recover = options.bad_scans == "skip"
     bag = open_bag(path, recover)

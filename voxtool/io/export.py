@@ -180,13 +180,14 @@ def write_pgm(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
     The YAML's origin is in the scans' frame (a map built about --origin is shifted back, as the
     .mcap's OccupancyGrid is), and says so; --z-range stays in the map's local heights."""
     from voxtool.atomic import check_writable
-    from voxtool.grid import map_yaml, pgm_bytes, project
+    from voxtool.grid import map_yaml, pgm_bytes
+    from voxtool.ground import project_grid
 
     if include_free:
         raise ParameterError(f"{path}: a grid always holds free, occupied and unknown cells; --free is for .ply/.pcd")
     yaml_path = grid_yaml_path(path)
     check_writable(yaml_path)
-    grid = project(leaves, resolution, threshold_log, z_range, above_ground)
+    grid = project_grid(leaves, resolution, threshold_log, z_range, above_ground)
     with atomic_writer(path) as handle:
         handle.write(pgm_bytes(grid))
     with atomic_writer(yaml_path) as handle:

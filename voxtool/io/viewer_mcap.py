@@ -142,13 +142,13 @@ def write_map_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log:
     `stamp_ns` (log time, header and entity stamps): the time of the last scan the map holds, 0
     if unknown. A map built about a local origin: the scene and the grid in the scans' frame
     (`map`), the Octomap in `map_local` with a /tf_static transform between the two."""
-    from voxtool.grid import project
+    from voxtool.ground import project_grid
     from voxtool.io.ros2 import Ros2McapWriter
 
     shifted = origin is not None and any(origin)
     update = scene_update(leaves, resolution, threshold_log, include_free, stamp_ns, origin=origin)
     octomap = octomap_message(leaves, resolution, threshold_log, stamp_ns, LOCAL_FRAME if shifted else FRAME)
-    grid = project(leaves, resolution, threshold_log, z_range, above_ground) if len(leaves) else None
+    grid = project_grid(leaves, resolution, threshold_log, z_range, above_ground) if len(leaves) else None
     with atomic_writer(path) as f:
         writer = Ros2McapWriter(f)
         if shifted:

@@ -106,7 +106,7 @@ def _next_header(data, start: int, size: int) -> int | None:
 
 
 def _errors() -> tuple:
-    from voxtool.sources.rosbag import bag_errors
+    from voxtool.sources.bag_limits import bag_errors
 
     return bag_errors()
 
@@ -183,7 +183,7 @@ class LinearBag:
             self.read_bytes = end
 
     def _top(self, header: dict, body: memoryview, count: bool) -> Iterator:
-        from voxtool.sources.rosbag import bounded_chunk_decompressor
+        from voxtool.sources.bag_limits import bounded_chunk_decompressor
 
         op = header.get("op", b"\0")[0]
         if op == OP_CHUNK:
