@@ -88,6 +88,21 @@ def test_view_without_a_display_is_one_line(sample_map):
     assert proc.returncode == 1 and proc.stderr.count("\n") == 1 and "--screenshot" in proc.stderr, proc.stderr
 
 
+def test_screenshot_json_without_a_display_is_json_alone(sample_map, tmp_path):
+    """No display: Open3D falls back to an EGL context and its C++ prints notes on stdout; with
+    --json, stdout holds the JSON alone (the notes go to stderr)."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    proc = subprocess.run([sys.executable, "-m", "voxtool.cli", "view", str(sample_map[0]), "--screenshot",
+                           str(tmp_path / "s.png"), "--size", "320x240", "--json"], capture_output=True, text=True,
+                          timeout=120, env=env)
+    if proc.returncode != 0 and ("EGL" in proc.stderr or "OpenGL" in proc.stderr):
+        pytest.skip(f"no offscreen OpenGL here: {proc.stderr.strip().splitlines()[-1]}")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["occupied_voxels_shown"] == sample_map[1]["occupied_voxels"], proc.stdout[:300]
+
+
 def test_ctrl_c_ends_the_view_window(sample_map):
     """A window under a real X server (Xvfb): Ctrl-C (SIGINT) ends `view` with exit 130 (Open3D's
     run loop held the interpreter, and only SIGTERM ended it)."""

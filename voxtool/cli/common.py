@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -203,6 +205,21 @@ def summary_rows(stats: dict) -> list[tuple[str, str]]:
             ("scan latency", f"p50 {lat['p50']:.1f} ms, p95 {lat['p95']:.1f} ms, max {lat['max']:.1f} ms"),
         ]
     return rows
+
+
+@contextlib.contextmanager
+def stdout_to_stderr():
+    """What a library writes to file descriptor 1 (C++ code printing, not Python's sys.stdout)
+    goes to stderr meanwhile: a command's stdout holds its result alone (--json that is JSON)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
 
 
 def parse_box(text: str | None, option: str, frame: str = "") -> tuple[float, ...] | None:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from voxtool.cli.common import emit, handle_errors
+from voxtool.cli.common import emit, handle_errors, stdout_to_stderr
 
 
 @click.command()
@@ -47,6 +47,7 @@ def view(map_file, show_free, slice_z, screenshot, size, resolution, as_json, pr
     if screenshot is None:
         show(scene, map_file.name, show_free, layer)
         return
-    result = shoot(scene, screenshot, map_file.name, show_free, layer, width, height)
+    with stdout_to_stderr():  # Open3D's C++ prints its notes on stdout; stdout is for the result (--json)
+        result = shoot(scene, screenshot, map_file.name, show_free, layer, width, height)
     emit(result, as_json, [(k.replace("_", " "), f"{v:,}" if isinstance(v, int) else str(v))
                            for k, v in result.items()])
