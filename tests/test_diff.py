@@ -195,3 +195,20 @@ def test_diff_png_crop_draws_the_changes_in_the_box(sample_map, tmp_path):
     assert sum(report["png"]["voxels"].values()) == int(inside.sum()) < len(pts)
     code, _, err = cli("diff", less, full, "--crop", ",".join(map(str, box)))
     assert code == 2 and "--crop frames the --png picture" in err
+
+
+def test_a_map_against_its_lossless_decode_says_what_its_log_odds_figures_mean(tmp_path):
+    """A decoded packet log holds states, each voxel at its state's log-odds: against the map it was
+    encoded from, no state changes, and the large KL divergence is that quantization, which the
+    report names (state_maps) instead of leaving a bare number."""
+    assert cli("build", "--sample", "-o", tmp_path / "m.vxm", "--max-range", "20", "--no-progress")[0] == 0
+    assert cli("encode", "--sample", "-o", tmp_path / "m.mcap", "--max-range", "20", "--no-progress")[0] == 0
+    assert cli("decode", tmp_path / "m.mcap", "-o", tmp_path / "d.vxm", "--no-progress")[0] == 0
+    code, out, err = cli("diff", tmp_path / "m.vxm", tmp_path / "d.vxm", "--json")
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["changed_voxels"] == 0 and report["kl_divergence"] > 1.0
+    assert report["state_maps"] == [str(tmp_path / "d.vxm")]
+    text = cli("diff", tmp_path / "m.vxm", tmp_path / "d.vxm")[1]
+    assert "holds states (decoded from packets)" in text and "not a change" in text
+    assert json.loads(cli("diff", tmp_path / "m.vxm", tmp_path / "m.vxm", "--json")[1])["state_maps"] == []

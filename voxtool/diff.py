@@ -42,6 +42,7 @@ class MapDiff:
     common_known: int = 0
     blocks: list = field(default_factory=list)  # Leaves of changed nodes, values = change kind
     b_map: object = None  # map B as opened (the picture's background)
+    state_maps: list = field(default_factory=list)  # the maps that hold states only (decoded packet logs)
     _changed: Leaves | None = None  # the blocks joined (changed()), until the next add
 
     def add(self, a: Leaves, a_threshold: float, b: Leaves, b_threshold: float) -> None:
@@ -99,6 +100,7 @@ class MapDiff:
             "same_state_other_log_odds": int(c[K.SAME_STATE_NEW_VALUE]),
             "common_known_voxels": self.common_known,
             "kl_divergence": self.kl_divergence,
+            "state_maps": self.state_maps,
             "changed_bbox": self.bbox(),
         }
 
@@ -112,6 +114,8 @@ class _Map:
     leaves: Leaves | None = None  # a single file's
     threshold: float = 0.0
     origin: list | None = None  # the local origin it was built about (--origin), None: none
+    # decoded or merged from a packet log: it holds states, each at one log-odds, not probabilities
+    state_map: bool = False
 
 
 def _open(path: str | os.PathLike) -> _Map:
@@ -125,7 +129,9 @@ def _open(path: str | os.PathLike) -> _Map:
     from voxtool.api import load_leaves
 
     leaves, resolution, threshold, meta = load_leaves(path)
-    return _Map(path, resolution, leaves=leaves, threshold=threshold, origin=meta.get("info", {}).get("origin"))
+    info = meta.get("info", {})
+    return _Map(path, resolution, leaves=leaves, threshold=threshold, origin=info.get("origin"),
+                state_map="packets" in info)
 
 
 def split_to_depth(leaves: Leaves, depth: int) -> Leaves:
@@ -196,7 +202,7 @@ def diff_maps(a_path: str | os.PathLike, b_path: str | os.PathLike, progress: bo
     if not np.allclose(origins[0], origins[1], rtol=0, atol=1e-6):
         raise ParameterError(f"{b.path}: built about the local origin {origins[1].tolist()}, {a.path} about "
                              f"{origins[0].tolist()}: build both with the same --origin X,Y,Z to compare them")
-    result = MapDiff(a.resolution, b_map=b)
+    result = MapDiff(a.resolution, b_map=b, state_maps=[str(m.path) for m in (a, b) if m.state_map])
     for la, ta, lb, tb in _regions(a, b, progress):
         result.add(la, ta, lb, tb)
     return result

@@ -77,6 +77,10 @@ def diff(map_a, map_b, as_json, png, view, crop, ply, max_changed, progress):
              ("same state, other log-odds", f"{report['same_state_other_log_odds']:,}"),
              ("KL divergence", f"{report['kl_divergence']:.6g} over {report['common_known_voxels']:,} voxels known "
                                "in both")]
+    if report["state_maps"]:  # a decoded packet log: its voxels sit at one log-odds per state
+        rows.append(("", f"{' and '.join(report['state_maps'])} holds states (decoded from packets), each voxel at "
+                         "its state's log-odds: the log-odds and KL figures measure that, not a change; "
+                         "compare the states above"))
     if report["changed_bbox"]:
         box = report["changed_bbox"]
         rows.append(("changes within", f"{box['min']} .. {box['max']} m"))
