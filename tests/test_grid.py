@@ -101,7 +101,22 @@ def test_pruned_leaves_paint_their_whole_square(tmp_path):
     expected[:, 4] = UNKNOWN
     expected[1, 4] = OCCUPIED
     assert np.array_equal(grid.cells, expected)
-    assert project(leaves, 0.5, 0.0, (0.5, 1.0)).cells.shape == (4, 4)  # the occupied voxel's layer is z 0
+    band = project(leaves, 0.5, 0.0, (0.5, 1.0)).cells  # the map's footprint; the occupied voxel's layer is z 0
+    assert band.shape == (4, 5) and np.all(band[:, :4] == FREE) and np.all(band[:, 4] == UNKNOWN)
+
+
+def test_every_grid_of_one_map_lies_on_the_others(sample_map, tmp_path):
+    """--z-range bands and --above-ground span the map's footprint: one origin, one size, so that
+    grids of one map overlay cell for cell (they differed by the extent of what each band held)."""
+    path, _ = sample_map
+    grids = []
+    for option, value in (("--z-range", "0.2,1.5"), ("--z-range", "-0.5,0.3"), ("--above-ground", "0.3,2")):
+        out = tmp_path / f"g{len(grids)}.pgm"
+        code, _, err = cli("export", path, "-o", out, option, value)
+        assert code == 0, err
+        grids.append(read_nav2_map(out.with_suffix(".yaml")))
+    assert len({g[0].shape for g in grids}) == 1 and len({tuple(g[2]) for g in grids}) == 1
+    assert not np.array_equal(grids[0][0], grids[2][0])  # the same cells, not the same grid
 
 
 def test_bad_z_range_is_one_line(sample_map, tmp_path):

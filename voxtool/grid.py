@@ -74,20 +74,28 @@ def _in_range(leaves: Leaves, resolution: float, z_range):
     return keys[inside], edge[inside], leaves.values[inside]
 
 
+def footprint(leaf_sets) -> tuple[int, int, int, int]:
+    """(x0, y0, width, height) in keys of the columns a map's voxels (free ones too) cover: every
+    2D grid of one map spans it, whatever its band, so that grids of one map lie on each other."""
+    lo = hi = None
+    for leaves, _ in leaf_sets():
+        if leaves.codes.shape[0]:
+            keys, edge = morton_decode(leaves.codes).astype(np.int64), leaf_edge(leaves.depths)
+            a, b = keys[:, :2].min(axis=0), (keys[:, :2] + edge[:, None]).max(axis=0)
+            lo, hi = (a, b) if lo is None else (np.minimum(lo, a), np.maximum(hi, b))
+    if lo is None:
+        raise ParameterError("the map holds no voxel")
+    return int(lo[0]), int(lo[1]), int(hi[0]) - int(lo[0]), int(hi[1]) - int(lo[1])
+
+
 def project_sets(leaf_sets, resolution: float, z_range: tuple[float, float] | None = None) -> Grid2D:
     """project() of a map given as `leaf_sets()`: a fresh iterator of (leaves, threshold
     log-odds) each call (a sharded map's parts), read twice: for the grid's extent, then to paint;
     memory is bounded by a set and the grid."""
-    lo = hi = None
-    for leaves, _ in leaf_sets():
-        keys, edge, _ = _in_range(leaves, resolution, z_range)
-        if keys.shape[0]:
-            a, b = keys[:, :2].min(axis=0), (keys[:, :2] + edge[:, None]).max(axis=0)
-            lo, hi = (a, b) if lo is None else (np.minimum(lo, a), np.maximum(hi, b))
-    if lo is None:
-        raise ParameterError("no voxel of the map lies in the --z-range" if z_range else "the map holds no voxel")
-    x0, y0 = int(lo[0]), int(lo[1])
-    width, height = int(hi[0]) - x0, int(hi[1]) - y0
+    x0, y0, width, height = footprint(leaf_sets)
+    if z_range is not None and not any(_in_range(leaves, resolution, z_range)[0].shape[0]
+                                       for leaves, _ in leaf_sets()):
+        raise ParameterError("no voxel of the map lies in the --z-range")
     if width * height > 1 << 31:
         raise ParameterError(f"the grid would have {width} x {height} cells; give a --z-range or --crop")
     paint = np.zeros(width * height, dtype=np.uint8)  # 0 unknown, 1 free, 2 occupied: the highest wins

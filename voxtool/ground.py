@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 from voxtool.errors import ParameterError
-from voxtool.grid import FREE, OCCUPIED, UNKNOWN, Grid2D, parse_range, project
+from voxtool.grid import FREE, OCCUPIED, UNKNOWN, Grid2D, footprint, parse_range, project
 from voxtool.keys import TREE_MAX_VAL, expand_leaves, morton_decode
 from voxtool.maps.base import Leaves
 
@@ -330,14 +330,18 @@ def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float
     under it is known and nothing in the band is occupied, unknown where its ground is not."""
     keys, hits = occupied_voxels(leaves, threshold_log)
     ground = ground_of(keys, resolution, params, weights=hits)
-    cells = np.where(np.isnan(ground.height), UNKNOWN, FREE).astype(np.int8)
+    x0, y0, width, height = footprint(lambda: [(leaves, threshold_log)])  # the map's, as --z-range's grid
+    cells = np.full((height, width), UNKNOWN, dtype=np.int8)
+    rows, cols = ground.height.shape
+    r0, c0 = ground.y0 - y0, ground.x0 - x0  # the ground's columns lie within the map's
+    cells[r0:r0 + rows, c0:c0 + cols] = np.where(np.isnan(ground.height), UNKNOWN, FREE)
     # a voxel's height above the ground: its bottom face above the floor voxel's (the ground's height),
     # so whole voxel layers over the floor; a road that straddles a voxel boundary fills the floor
     # voxel and the one above it, and that one, at a layer, is still the road and not 0.3 m above it
     above = (keys[:, 2] - TREE_MAX_VAL) * resolution - ground.under(keys[:, 0], keys[:, 1])
     inside = (above >= band[0]) & (above <= band[1])  # NaN (no ground) is in no band
-    cells[keys[inside, 1] - ground.y0, keys[inside, 0] - ground.x0] = OCCUPIED
-    origin = ((ground.x0 - TREE_MAX_VAL) * resolution, (ground.y0 - TREE_MAX_VAL) * resolution)
+    cells[keys[inside, 1] - y0, keys[inside, 0] - x0] = OCCUPIED
+    origin = ((x0 - TREE_MAX_VAL) * resolution, (y0 - TREE_MAX_VAL) * resolution)
     return Grid2D(cells, resolution, origin, None)
 
 
