@@ -253,9 +253,8 @@ def test_with_the_ground_apart_only_points_above_it_seed_groups_and_groups_take_
     points = np.concatenate(scans)
     starts = np.concatenate([[0], np.cumsum([len(s) for s in scans])])
     is_ground = points[:, 2] < -5.0
-    cells = np.floor(points).astype(np.int64) + 32768
-    columns = cells[:, 0] << 16 | cells[:, 1]
-    got = dynamic_points(vm, points, starts, (is_ground, columns))
+    cells = np.floor(points).astype(np.int64) + 32768  # the voxel columns, as dynamic_points' point_columns
+    got = dynamic_points(vm, points, starts, is_ground)
     want = np.zeros(points.shape[0], dtype=bool)
     grouped = np.zeros(points.shape[0], dtype=bool)
     for a, b in zip(starts[:-1], starts[1:]):

@@ -277,9 +277,17 @@ def test_clean_s_ground_is_the_terrain_and_not_what_stands_on_it():
     height = np.where(on_box, tops, rng.normal(0.0, 0.01, xy.shape[0]))
     height[under_canopy & (rng.random(xy.shape[0]) < 0.5)] = rng.uniform(3.0, 4.0)  # a crown above seen ground
     points = np.c_[xy, slope + height].astype(np.float32)
-    is_ground, columns = ground_points(points, 0.1, 0.3)
+    is_ground = ground_points(points, 0.1, 0.3)
     terrain = ~on_box & (height < 0.1)
     assert is_ground[terrain].all()
     assert not is_ground[height > 0.3 + 0.1 * 0.2 + 0.1].any()
+    from voxtool import clean
+
+    # the keys made a chunk at a time: the same flags as at once
+    saved, clean.GROUND_CHUNK = clean.GROUND_CHUNK, 7_777
+    try:
+        assert np.array_equal(ground_points(points, 0.1, 0.3), is_ground)
+    finally:
+        clean.GROUND_CHUNK = saved
     keys = np.floor(points[:, :2].astype(np.float64) / 0.1).astype(np.int64) + 32768  # as OctoMap keys them
-    np.testing.assert_array_equal(columns, keys[:, 0] << 16 | keys[:, 1])
+    np.testing.assert_array_equal(clean.point_columns(points, 0.1), keys[:, 0] << 16 | keys[:, 1])

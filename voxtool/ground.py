@@ -206,16 +206,6 @@ def _supported_floor(codes, column, x0, y0, rows, cols, support, lowest):
     return floor, which
 
 
-def _unique_codes(codes: np.ndarray, weights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """The sorted unique codes and how often each was hit: its repeats, or its weights summed."""
-    if weights is None:
-        return np.unique(codes, return_counts=True)
-    order = np.argsort(codes, kind="stable")
-    codes = codes[order]
-    starts = np.flatnonzero(np.r_[True, codes[1:] != codes[:-1]])
-    return codes[starts], np.add.reduceat(np.asarray(weights, dtype=np.float64)[order], starts)
-
-
 def _typical_floor(floor: np.ndarray, block: int, quantile: float) -> np.ndarray:
     """Each column's typical floor around it: the median of the `quantile` floors of the 3 x 3
     blocks of `block` x `block` columns around its own (NONE-free; NONE where none has a floor).
@@ -263,6 +253,23 @@ class Ground:
         return out.reshape(kx.shape)
 
 
+def voxel_codes(keys: np.ndarray) -> np.ndarray:
+    """Finest keys (N, 3) as the codes ground_from_codes sorts (x << 32 | y << 16 | z)."""
+    keys = np.asarray(keys, dtype=np.int64)
+    return keys[:, 0] << 32 | keys[:, 1] << 16 | keys[:, 2]
+
+
+def unique_codes(codes: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The sorted unique codes and how often each was hit: its repeats, or its weights summed
+    (pieces of unique_codes joined: their counts as the weights)."""
+    if weights is None:
+        return np.unique(codes, return_counts=True)
+    order = np.argsort(codes, kind="stable")
+    codes = codes[order]
+    starts = np.flatnonzero(np.r_[True, codes[1:] != codes[:-1]])
+    return codes[starts], np.add.reduceat(np.asarray(weights, dtype=np.float64)[order], starts)
+
+
 def ground_of(keys: np.ndarray, resolution: float, params: GroundParams = GroundParams(),
               column: int = 1, weights: np.ndarray | None = None) -> Ground:
     """The ground under occupied voxels given as finest keys (N, 3; repeats allowed), per
@@ -272,11 +279,20 @@ def ground_of(keys: np.ndarray, resolution: float, params: GroundParams = Ground
     keys = np.asarray(keys, dtype=np.int64)
     if keys.shape[0] == 0:
         raise ParameterError("the map holds no occupied voxel: there is no ground to find")
-    x0, y0 = int(keys[:, 0].min()) // column, int(keys[:, 1].min()) // column
-    cols, rows = int(keys[:, 0].max()) // column - x0 + 1, int(keys[:, 1].max()) // column - y0 + 1
+    return ground_from_codes(*unique_codes(voxel_codes(keys), weights), resolution, params, column)
+
+
+def ground_from_codes(codes: np.ndarray, hits: np.ndarray, resolution: float, params: GroundParams = GroundParams(),
+                      column: int = 1) -> Ground:
+    """ground_of() of sorted unique voxel codes (voxel_codes) and how often each was hit: what a
+    caller holding many points builds piece by piece, never all their keys at once."""
+    if codes.shape[0] == 0:
+        raise ParameterError("the map holds no occupied voxel: there is no ground to find")
+    kx, ky = codes >> 32, (codes >> 16) & 0xFFFF
+    x0, y0 = int(kx.min()) // column, int(ky.min()) // column
+    cols, rows = int(kx.max()) // column - x0 + 1, int(ky.max()) // column - y0 + 1
     if rows * cols > 1 << 28:
         raise ParameterError(f"the ground grid would have {cols} x {rows} columns; --crop the map first")
-    codes, hits = _unique_codes(keys[:, 0] << 32 | keys[:, 1] << 16 | keys[:, 2], weights)
     nowhere = np.zeros((rows, cols), np.int32)
     floor, which = _supported_floor(codes, column, x0, y0, rows, cols, params.support, nowhere)
     lowest_voxel, lowest_which = _supported_floor(codes, column, x0, y0, rows, cols, 0, nowhere)

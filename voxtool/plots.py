@@ -158,19 +158,36 @@ CLEAN_VIEWS = {"top": (0, 1, 2), "front": (0, 2, 1), "side": (1, 2, 0)}  # (hori
 CLEAN_RASTER = 520  # pixels along the longer side of a panel: about its width on the 120-dpi page
 
 
-def _nearest_pixels(u: np.ndarray, w: np.ndarray, depth: np.ndarray, extent, shape) -> tuple[np.ndarray, np.ndarray]:
+PIXEL_CHUNK = 1 << 21  # points placed on the raster at a time
+
+
+def _nearest_pixels(u: np.ndarray, w: np.ndarray, depth: np.ndarray, extent, shape,
+                    among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """For points (u, w) over `extent` (u0, u1, w0, w1) in a raster of `shape` (rows, columns):
-    each lit pixel (flat index) and the point it shows, the one of greatest `depth` (nearest
-    the viewer), as a scatter plot drawn in that order would."""
+    each lit pixel (flat index, ascending) and the point it shows, the one of greatest `depth`
+    (nearest the viewer; of equal ones the last), as a scatter plot drawn in that order would.
+    PIXEL_CHUNK points at a time, in float64, each chunk's winners against the raster's so far:
+    18.7 M points at once took 2 GB. `among`: only these points (indices; the result's index
+    into it, as if u[among] were given), read a chunk at a time."""
     rows, cols = shape
     u0, u1, w0, w1 = extent
-    col = np.floor((u - u0) / max(u1 - u0, 1e-9) * cols).astype(np.int64)
-    row = np.floor((w - w0) / max(w1 - w0, 1e-9) * rows).astype(np.int64)
-    inside = np.flatnonzero((col >= 0) & (col < cols) & (row >= 0) & (row < rows))
-    pixel = row[inside] * cols + col[inside]
-    order = np.lexsort((depth[inside], pixel))  # by pixel, nearest last
-    last = np.flatnonzero(np.append(pixel[order][1:] != pixel[order][:-1], True))
-    return pixel[order][last], inside[order][last]
+    best_depth = np.full(rows * cols, -np.inf)
+    best = np.full(rows * cols, -1, dtype=np.int64)
+    for a in range(0, len(u) if among is None else len(among), PIXEL_CHUNK):
+        pick = slice(a, a + PIXEL_CHUNK) if among is None else among[a:a + PIXEL_CHUNK]
+        uu, ww, dd = (np.asarray(v[pick], dtype=np.float64) for v in (u, w, depth))
+        col = np.floor((uu - u0) / max(u1 - u0, 1e-9) * cols).astype(np.int64)
+        row = np.floor((ww - w0) / max(w1 - w0, 1e-9) * rows).astype(np.int64)
+        inside = np.flatnonzero((col >= 0) & (col < cols) & (row >= 0) & (row < rows))
+        pixel = row[inside] * cols + col[inside]
+        order = np.lexsort((dd[inside], pixel))  # by pixel, nearest last
+        last = np.flatnonzero(np.append(pixel[order][1:] != pixel[order][:-1], True))
+        p, i = pixel[order][last], inside[order][last]
+        better = dd[i] >= best_depth[p]  # a later chunk's point of equal depth is drawn over
+        best_depth[p[better]] = dd[i[better]]
+        best[p[better]] = i[better] + a
+    lit = np.flatnonzero(best >= 0)
+    return lit, best[lit]
 
 
 def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: float | None = None,
@@ -198,14 +215,13 @@ def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: 
         raise ParameterError("--above-ground colours a top view by height above the ground: not with --view")
 
     u, w, c = CLEAN_VIEWS[view]
-    points = points[:, [u, w, c]].astype(np.float64)
+    pu, pw, z = points[:, u], points[:, w], points[:, c]  # views: no copy of 18 M points (float64 per chunk)
     static = ~dynamic
-    z = points[:, 2]
     if extent_m is not None and z.size:
-        cx, cy = np.median(points[:, 0]), np.median(points[:, 1])
+        cx, cy = float(np.median(pu)), float(np.median(pw))
         extent = (cx - extent_m / 2, cx + extent_m / 2, cy - extent_m / 2, cy + extent_m / 2)
     elif z.size:
-        (u0, w0), (u1, w1) = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+        u0, u1, w0, w1 = float(pu.min()), float(pu.max()), float(pw.min()), float(pw.max())
         extent = (u0, u1 if u1 > u0 else u0 + 1.0, w0, w1 if w1 > w0 else w0 + 1.0)
     else:
         extent = (0.0, 1.0, 0.0, 1.0)
@@ -217,27 +233,28 @@ def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: 
     if view == "top" and below_roof and z.size:
         # on a coarser raster (about export's voxel pixels): points are sparser than voxels, and
         # on the drawing's raster a roof's returns cover too few of the pixels to be found
-        _, shown = _nearest_pixels(points[:, 0], points[:, 1], z, extent, (max(1, shape[0] // 8), max(1, shape[1] // 8)))
-        roof = roof_of(z[shown])
+        _, shown = _nearest_pixels(pu, pw, z, extent, (max(1, shape[0] // 8), max(1, shape[1] // 8)))
+        roof = roof_of(z[shown].astype(np.float64))
     drawn = np.ones(len(z), bool) if roof is None else z < roof
-    lo, hi = np.percentile(z[drawn], [1, 99]) if drawn.any() else (0.0, 1.0)
+    lo, hi = np.percentile(z[drawn].astype(np.float64), [1, 99]) if drawn.any() else (0.0, 1.0)
     hi = max(hi, lo + 1e-6)
-    colours = height_colours(np.clip(z, lo, hi), (float(lo), float(hi)))
+    kept = np.flatnonzero(static & drawn)
+    pixel, which = _nearest_pixels(pu, pw, z, extent, shape, among=kept)
+    shown = kept[which]  # coloured are the points drawn, not every point (18 M x 4 float64: 0.6 GB)
+    colours = height_colours(np.clip(z[shown].astype(np.float64), lo, hi), (float(lo), float(hi)))
     if above_ground is not None and z.size:
-        above = height_above_ground(points, static, resolution)
+        above = height_above_ground(points[:, [u, w, c]].astype(np.float64), static, resolution)[shown]
         lo, hi = float(above_ground[0]), max(float(above_ground[1]), float(above_ground[0]) + 1e-6)
         colours = height_colours(np.clip(np.nan_to_num(above, nan=lo), lo, hi), (lo, hi))
         colours[np.isnan(above), :3] = NO_GROUND_RGB
-    kept = np.flatnonzero(static & drawn)
-    pixel, which = _nearest_pixels(points[kept, 0], points[kept, 1], z[kept], extent, shape)
     after_image = np.ones((shape[0] * shape[1], 4))
     after_image[:, 3] = 0.0  # transparent where no point lies
-    after_image[pixel, :3] = colours[kept[which], :3]
+    after_image[pixel, :3] = colours[:, :3]
     after_image[pixel, 3] = 1.0
     before_image = after_image.copy()
     gone = np.flatnonzero(dynamic & drawn)
     if gone.size:  # the removed ones in red, over everything, 2 x 2 pixels
-        pixel, _ = _nearest_pixels(points[gone, 0], points[gone, 1], z[gone], extent, shape)
+        pixel, _ = _nearest_pixels(pu, pw, z, extent, shape, among=gone)
         for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
             r, cl = pixel // shape[1] + dr, pixel % shape[1] + dc
             ok = (r < shape[0]) & (cl < shape[1])

@@ -34,7 +34,12 @@ def in_source_frame(points: np.ndarray, origin, resolution: float) -> np.ndarray
         return points
     moved = np.asarray(points, dtype=np.float64) + np.asarray(origin, dtype=np.float64)
     largest = float(np.abs(moved).max()) if moved.size else 0.0
-    return moved if np.spacing(np.float32(largest)) > resolution * 1e-3 else moved.astype(np.float32)
+    return moved if needs_double(largest, resolution) else moved.astype(np.float32)
+
+
+def needs_double(largest: float, resolution: float) -> bool:
+    """Whether coordinates up to `largest` metres need float64 to stay within a thousandth of a voxel."""
+    return bool(np.spacing(np.float32(largest)) > resolution * 1e-3)
 
 
 def _cloud(leaves: Leaves, resolution: float, threshold_log: float, include_free: bool, origin=None):
