@@ -97,9 +97,13 @@ def test_figure_has_metric_axes_colour_bar_legend_and_scale_bar(sample_map):
     assert (ax.get_xlabel(), ax.get_ylabel()) == ("x (m)", "z (m)")
     values = raster.values_m(res)
     lo, hi = bar.get_xlim() if bar.get_xlabel() else bar.get_ylim()
-    assert lo == pytest.approx(np.nanmin(values)) and hi == pytest.approx(np.nanmax(values), abs=1e-6)
-    assert "(m)" in (bar.get_xlabel() + bar.get_ylabel())
-    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["free", "unknown"]
+    occupied = values[~np.isnan(values)]
+    # the 1st to 99th percentile (the sample's far returns reach 180 m out), the rest at the ends, said
+    assert lo == pytest.approx(np.percentile(occupied, 1)) and hi == pytest.approx(np.percentile(occupied, 99))
+    assert occupied.min() < lo - 10 and raster.colour_range[2] == pytest.approx(
+        np.mean((occupied < lo) | (occupied > hi)))
+    assert "(m)" in (bar.get_xlabel() + bar.get_ylabel()) and "beyond the bar, drawn at its ends" in (bar.get_xlabel() + bar.get_ylabel())
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["free", "unknown"]
     bars = [a for a in ax.artists if isinstance(a, AnchoredSizeBar)]
     assert len(bars) == 1 and bars[0].txt_label.get_text().endswith(" m")
     caption = " ".join(t.get_text() for t in fig.texts) + (fig._supxlabel.get_text() if fig._supxlabel else "")
@@ -194,3 +198,55 @@ def test_a_snapshot_is_drawn_a_chunk_of_leaves_at_a_time(sample_map, tmp_path):
     got = json.loads(text)
     assert code == 0 and got.pop("caption") == "map.vxm" and a.pop("caption") == "map"
     assert {k: v for k, v in got.items() if k != "written"} == a
+
+
+def _map_of(tmp_path, keys, name="m.vxm"):
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.io.mapfile import save_map
+    from voxtool.keys import TREE_MAX_VAL, morton_encode
+    from voxtool.maps.octree import OctreeMap
+
+    codes = np.unique(morton_encode((np.asarray(keys) + TREE_MAX_VAL).astype(np.uint16)))
+    m = OctreeMap(MapParams(resolution=0.2), SensorModel())
+    m.load_state({"leaf_codes": codes, "leaf_depths": np.full(codes.shape[0], 16, np.uint8),
+                  "leaf_values": np.full(codes.shape[0], np.float32(2.0))})
+    save_map(tmp_path / name, m, {"source": "generated"})
+    return tmp_path / name
+
+
+def test_one_height_gets_no_colour_bar_and_a_legend_that_says_it(tmp_path):
+    """Every voxel at one height: nothing for a colour bar to scale (it read '1e-9+2.75e-1', ticks
+    0-1); the legend names the height instead."""
+    import json
+
+    xs, ys = np.meshgrid(np.arange(40), np.arange(30), indexing="ij")
+    path = _map_of(tmp_path, np.c_[xs.ravel(), ys.ravel(), np.full(xs.size, 1)])
+    code, text, err = cli("export", path, "-o", tmp_path / "flat.png", "--json")
+    assert code == 0, err
+    report = json.loads(text)
+    assert report["colour_range_m"] is None and report["colour_clipped_share"] is None
+    leaves, res, thr, _ = load_leaves(path)
+    raster = picture.picture(leaves, res, thr, "top")
+    fig = picture.figure(raster, res, "flat")
+    assert len(fig.axes) == 1  # no colour bar's axes
+    assert [t.get_text() for t in fig.legends[0].get_texts()][0] == "occupied (all at 0.3 m)"
+
+
+def test_a_tall_front_view_fills_its_picture_and_its_legend_clears_the_title(tmp_path):
+    """A map 4 m wide and 30 m tall, seen from the front: the picture is about as narrow as the map
+    (it was 11 inches wide whatever the map, half of it blank) and the legend does not overlap the
+    title (it sat over it)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    xs, zs = np.meshgrid(np.arange(20), np.arange(150), indexing="ij")
+    path = _map_of(tmp_path, np.c_[xs.ravel(), np.zeros(xs.size, np.int64), zs.ravel()])
+    leaves, res, thr, _ = load_leaves(path)
+    raster = picture.picture(leaves, res, thr, "front")
+    fig = picture.figure(raster, res, "tower")
+    FigureCanvasAgg(fig).draw()
+    renderer = fig.canvas.get_renderer()
+    ax = fig.axes[0]
+    title, legend = ax.title.get_window_extent(renderer), fig.legends[0].get_window_extent(renderer)
+    assert not title.overlaps(legend)
+    picture_width = ax.get_window_extent(renderer).width
+    assert picture_width > 0.25 * fig.bbox.width and fig.get_size_inches()[0] < 6

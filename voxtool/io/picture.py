@@ -147,15 +147,22 @@ def figure(raster: Raster, resolution: float, label: str):
         norm = Normalize(lo, hi + 1e-9)
         known = occupied & ~np.isnan(values)
         rgb[known] = colormaps[COLORMAP](norm(np.clip(values[known], lo, hi)))[:, :3]
+        raster.colour_range = (lo, hi, float(np.mean((values[known] < lo) | (values[known] > hi))) if known.any() else 0.0)
         rgb[occupied & np.isnan(values)] = NO_GROUND_RGB
     elif occupied.any():
-        norm = Normalize(float(np.nanmin(values)), float(np.nanmax(values)) + 1e-9)
-        rgb[occupied] = colormaps[COLORMAP](norm(values[occupied]))[:, :3]
+        lo, hi, clipped = colour_range(values[occupied], resolution)
+        raster.colour_range = None if hi == lo else (lo, hi, clipped)
+        if hi == lo:  # one height: one colour, and nothing for a colour bar to scale
+            rgb[occupied] = colormaps[COLORMAP](0.5)[:3]
+        else:
+            norm = Normalize(lo, hi)
+            rgb[occupied] = colormaps[COLORMAP](norm(np.clip(values[occupied], lo, hi)))[:, :3]
     left, right, bottom, top = raster.metres(resolution)
     aspect = (top - bottom) / max(right - left, 1e-9)
     flat = aspect < 0.6  # a wide picture: the colour bar goes below it
-    fig = Figure(figsize=(11, float(np.clip(9.5 * aspect, 0.5, 14)) + (2.8 if flat else 1.4)), dpi=150,
-                 layout="constrained")
+    tall = float(np.clip(9.5 * aspect, 0.5, 14))  # the picture's height (inches), and its width from that:
+    wide = float(np.clip(tall / aspect + (2.5 if norm is not None and not flat else 0.8), 4.0, 11.0))  # none blank
+    fig = Figure(figsize=(wide, tall + (2.8 if flat else 1.4)), dpi=150, layout="constrained")
     ax = fig.add_subplot()
     ax.imshow(rgb, origin="lower", extent=(left, right, bottom, top), interpolation="nearest")
     ax.set_xlabel(f"{AXIS[u]} (m)")
@@ -170,8 +177,12 @@ def figure(raster: Raster, resolution: float, label: str):
                Patch(facecolor=UNKNOWN_RGB, edgecolor="0.5", label="unknown")]
     if raster.layer is not None:
         handles.insert(0, Patch(facecolor=SLICE_RGB, label="occupied"))
-    ax.legend(handles=handles, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=len(handles), fontsize=8,
-              frameon=False)
+    one_height = getattr(raster, "colour_range", "") is None
+    if one_height:
+        z0 = float(np.nanmin(values[occupied]))
+        handles.insert(0, Patch(facecolor=colormaps[COLORMAP](0.5)[:3], label=f"occupied (all at {z0:.3g} m)"))
+    # one layout rule for every view: the legend in a row of its own above the picture, never over the title
+    fig.legend(handles=handles, loc="outside upper right", ncol=len(handles), fontsize=8, frameon=False)
     if norm is not None:
         from matplotlib.cm import ScalarMappable
 
@@ -179,7 +190,9 @@ def figure(raster: Raster, resolution: float, label: str):
             f"{AXIS[a]} of the nearest occupied voxel"
         if above:
             what = "height of the highest occupied voxel above the ground under it (grey: no ground known)"
-        fig.colorbar(ScalarMappable(norm, colormaps[COLORMAP]), ax=ax, shrink=0.8, label=f"{what} (m)",
+        clipped = "" if above or not raster.colour_range[2] else \
+            f"; {raster.colour_range[2]:.1%} of the pixels beyond the bar, drawn at its ends"
+        fig.colorbar(ScalarMappable(norm, colormaps[COLORMAP]), ax=ax, shrink=0.8, label=f"{what} (m){clipped}",
                      location="bottom" if flat else "right")
     length = _nice_length(right - left)
     ax.add_artist(AnchoredSizeBar(ax.transData, length, f"{length:g} m", "lower right", pad=0.5, sep=4,
@@ -195,6 +208,19 @@ def figure(raster: Raster, resolution: float, label: str):
     fig.supxlabel(f"{label} · resolution {resolution:g} m · 1 pixel = {step:g} m · "
                   f"{int(occupied.sum()):,} occupied pixels", fontsize=8, x=0.01, ha="left")
     return fig
+
+
+def colour_range(values: np.ndarray, resolution: float) -> tuple[float, float, float]:
+    """(low, high, share of the values outside) of a picture's colours: the 1st to the 99th
+    percentile, so that a return 17 m under the road does not flatten every colour; the whole
+    range where that is at most a voxel wider. low == high: every value one height."""
+    lo, hi = float(np.min(values)), float(np.max(values))
+    if hi - lo < resolution / 2:
+        return lo, lo, 0.0
+    p1, p99 = (float(v) for v in np.percentile(values, [1, 99]))
+    if (hi - lo) - (p99 - p1) <= resolution or p99 - p1 < resolution / 2:
+        return lo, hi, 0.0
+    return p1, p99, float(np.mean((values < p1) | (values > p99)))
 
 
 def save(fig, path: Path) -> tuple[int, int]:
@@ -219,9 +245,13 @@ def check_options(view: str, slice_z: float | None) -> None:
 
 
 def figures(raster: Raster) -> dict:
+    drawn = getattr(raster, "colour_range", None)
     return {"format": "png", "view": raster.view, "raster_width": raster.width, "raster_height": raster.height,
             "voxels_per_pixel": 1 << raster.shift, "occupied_pixels": int((raster.state == OCCUPIED).sum()),
-            "free_pixels": int((raster.state == FREE).sum())}
+            "free_pixels": int((raster.state == FREE).sum()),
+            # the colour bar's metres and the share of pixels beyond them; null: no colour bar (one height)
+            "colour_range_m": None if drawn is None else [round(drawn[0], 6), round(drawn[1], 6)],
+            "colour_clipped_share": None if drawn is None else round(drawn[2], 6)}
 
 
 def picture(leaves: Leaves, resolution: float, threshold_log: float, view: str = "top",
