@@ -167,14 +167,17 @@ def _nearest_pixels(u: np.ndarray, w: np.ndarray, depth: np.ndarray, extent, sha
     each lit pixel (flat index, ascending) and the point it shows, the one of greatest `depth`
     (nearest the viewer; of equal ones the last), as a scatter plot drawn in that order would.
     PIXEL_CHUNK points at a time, in float64, each chunk's winners against the raster's so far:
-    18.7 M points at once took 2 GB. `among`: only these points (indices; the result's index
-    into it, as if u[among] were given), read a chunk at a time."""
+    18.7 M points at once took 2 GB. `among`: only these points, read a chunk at a time: indices
+    (the result's index into them, as if u[among] were given) or a mask (the result's index into
+    all the points)."""
     rows, cols = shape
     u0, u1, w0, w1 = extent
     best_depth = np.full(rows * cols, -np.inf)
     best = np.full(rows * cols, -1, dtype=np.int64)
     for a in range(0, len(u) if among is None else len(among), PIXEL_CHUNK):
         pick = slice(a, a + PIXEL_CHUNK) if among is None else among[a:a + PIXEL_CHUNK]
+        if among is not None and among.dtype == bool:  # a mask: its points of this chunk of all points
+            pick = np.flatnonzero(pick) + a
         uu, ww, dd = (np.asarray(v[pick], dtype=np.float64) for v in (u, w, depth))
         col = np.floor((uu - u0) / max(u1 - u0, 1e-9) * cols).astype(np.int64)
         row = np.floor((ww - w0) / max(w1 - w0, 1e-9) * rows).astype(np.int64)
@@ -185,7 +188,7 @@ def _nearest_pixels(u: np.ndarray, w: np.ndarray, depth: np.ndarray, extent, sha
         p, i = pixel[order][last], inside[order][last]
         better = dd[i] >= best_depth[p]  # a later chunk's point of equal depth is drawn over
         best_depth[p[better]] = dd[i[better]]
-        best[p[better]] = i[better] + a
+        best[p[better]] = pick[i[better]] if isinstance(pick, np.ndarray) and among.dtype == bool else i[better] + a
     lit = np.flatnonzero(best >= 0)
     return lit, best[lit]
 
@@ -238,9 +241,8 @@ def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: 
     drawn = np.ones(len(z), bool) if roof is None else z < roof
     lo, hi = np.percentile(z[drawn].astype(np.float64), [1, 99]) if drawn.any() else (0.0, 1.0)
     hi = max(hi, lo + 1e-6)
-    kept = np.flatnonzero(static & drawn)
-    pixel, which = _nearest_pixels(pu, pw, z, extent, shape, among=kept)
-    shown = kept[which]  # coloured are the points drawn, not every point (18 M x 4 float64: 0.6 GB)
+    # coloured are the points drawn, not every point (18 M x 4 float64: 0.6 GB)
+    pixel, shown = _nearest_pixels(pu, pw, z, extent, shape, among=static & drawn)
     colours = height_colours(np.clip(z[shown].astype(np.float64), lo, hi), (float(lo), float(hi)))
     if above_ground is not None and z.size:
         above = height_above_ground(points[:, [u, w, c]].astype(np.float64), static, resolution)[shown]
@@ -252,8 +254,8 @@ def clean_figure(points: np.ndarray, dynamic: np.ndarray, title: str, extent_m: 
     after_image[pixel, :3] = colours[:, :3]
     after_image[pixel, 3] = 1.0
     before_image = after_image.copy()
-    gone = np.flatnonzero(dynamic & drawn)
-    if gone.size:  # the removed ones in red, over everything, 2 x 2 pixels
+    gone = dynamic & drawn
+    if gone.any():  # the removed ones in red, over everything, 2 x 2 pixels
         pixel, _ = _nearest_pixels(pu, pw, z, extent, shape, among=gone)
         for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
             r, cl = pixel // shape[1] + dr, pixel % shape[1] + dc
