@@ -169,26 +169,14 @@ def _map_of(tmp_path, path, *options):
     return report, load_map(out)[0], err
 
 
-def test_legacy_tf_poses_as_tf2(tmp_path, scans):
-    """tf/tfMessage (bags recorded before tf2) is read as /tf: the same map as tf2's."""
-    a = write_wild_bag(tmp_path / "tf2.bag", scans)
-    b = write_wild_bag(tmp_path / "legacy.bag", scans, tf="legacy")
-    (tmp_path / "a").mkdir()
-    (tmp_path / "b").mkdir()
-    ra, ma, _ = _map_of(tmp_path / "a", a)
-    rb, mb, _ = _map_of(tmp_path / "b", b)
-    assert ra["scans"] == rb["scans"] == len(scans)
-    la, lb = ma.leaves(), mb.leaves()
-    assert np.array_equal(la.codes, lb.codes) and np.array_equal(la.values, lb.values)
-
-
-@pytest.mark.parametrize("case", ["mixed", "late"])
+@pytest.mark.parametrize("case", ["legacy", "mixed", "late"])
 def test_tf_as_tf2_reads_it(tmp_path, scans, case):
-    """/tf on connections of both tf/tfMessage and tf2_msgs/TFMessage, and transforms stamped out
-    of order or twice (several publishers of one edge): tf2 keeps each edge's buffer sorted by
-    stamp, and so does voxtool: the same map as the clean tf2 bag's, and info names the tree."""
+    """tf/tfMessage (bags recorded before tf2), /tf on connections of both it and
+    tf2_msgs/TFMessage, and transforms stamped out of order or twice (several publishers of one
+    edge): tf2 keeps each edge's buffer sorted by stamp, and so does voxtool: the same map as the
+    clean tf2 bag's, and info names the tree."""
     a = write_wild_bag(tmp_path / "tf2.bag", scans)
-    b = write_wild_bag(tmp_path / f"{case}.bag", scans, tf="mixed" if case == "mixed" else "tf",
+    b = write_wild_bag(tmp_path / f"{case}.bag", scans, tf="tf" if case == "late" else case,
                        late_stamps=case == "late")
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
