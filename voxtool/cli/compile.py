@@ -159,7 +159,7 @@ def compile_cmd(as_json, progress, jobs, group):
 
     Without it, each command's first run after an install compiles the kernels it needs
     (about 3 s for `build`, 2 s for `encode --codec cm`). This takes about half a minute once
-    from an empty cache on a 2-core machine, in two processes (23 s idle, 31-61 s beside other
+    from an empty cache on a 2-core machine, in two processes (23-31 s idle, 46-61 s beside other
     work; 2 s when the cache is full); run it again only after changing voxtool's sources (the
     cache then recompiles by itself). Where stderr is no terminal it prints, instead of a bar, a
     line as each process finishes: how many commands are done, the ones it ran, and the seconds
