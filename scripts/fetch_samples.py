@@ -19,9 +19,15 @@ real Velodyne VLP-16/VLP-32/VLS-128 and Hesai Pandar 40P/64/QT64/QT128/XT16/XT32
 raw packet messages each (velodyne_msgs/VelodyneScan, pandar_msgs/PandarScan: no points until a
 driver decodes them), and two Continental radar logs. 3D LiDAR logs as drivers record them.
 
+tb3: .fetched/tb3/turtlebot3_scan2.bag, a ROS 1 bag of a simulated TurtleBot3 (Gazebo, the
+turtlebot3_world arena) driving: 538 LaserScans on /scan, frame base_scan, no /tf. Source: the
+public repository samialperen/oko_slam (commit 7136b806bfd13fafee9b7cf9995202ba063a0aca, MIT),
+ros_ws/bagfiles/simulation_data/turtlebot3_scan2.bag. A 2D scanner's log that nothing poses.
+
     python scripts/fetch_samples.py kitti GIT_DIR     # a clone or mirror of rancheng/mini_kitti_dataset
     python scripts/fetch_samples.py udacity GIT_DIR   # a clone or mirror of udacity/SFND_Lidar_Obstacle_Detection
     python scripts/fetch_samples.py nebula GIT_DIR    # a clone or mirror of tier4/nebula
+    python scripts/fetch_samples.py tb3 GIT_DIR       # a clone or mirror of samialperen/oko_slam
 """
 
 from __future__ import annotations
@@ -87,6 +93,17 @@ def nebula(git_dir: str) -> None:
     print(f"{out}: {laid} bags")
 
 
+TB3_COMMIT = "7136b806bfd13fafee9b7cf9995202ba063a0aca"
+TB3_BAG = "ros_ws/bagfiles/simulation_data/turtlebot3_scan2.bag"
+
+
+def tb3(git_dir: str) -> None:
+    out = FETCHED / "tb3"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "turtlebot3_scan2.bag").write_bytes(_git(git_dir)("show", f"{TB3_COMMIT}:{TB3_BAG}"))
+    print(f"{out}: turtlebot3_scan2.bag")
+
+
 def kitti(git_dir: str) -> None:
     git = _git(git_dir)
 
@@ -106,4 +123,4 @@ def kitti(git_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    {"kitti": kitti, "udacity": udacity, "nebula": nebula}[sys.argv[1]](sys.argv[2])
+    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3}[sys.argv[1]](sys.argv[2])

@@ -58,6 +58,15 @@ def nebula_bags() -> Path:
     return bags
 
 
+@pytest.fixture(scope="session")
+def tb3_bag() -> Path:
+    """A simulated TurtleBot3's LaserScans (Gazebo), no /tf (scripts/fetch_samples.py tb3)."""
+    path = FETCHED / "tb3" / "turtlebot3_scan2.bag"
+    if not path.is_file():
+        pytest.skip("the TurtleBot3 bag is absent (python scripts/fetch_samples.py tb3 GIT_DIR)")
+    return path
+
+
 def cli(*args):
     """Run the voxtool command line in this process: (exit code, stdout, stderr)."""
     from click.testing import CliRunner

@@ -6,9 +6,12 @@ odometry stays within 3 cm ATE; at the old fixed 100 m range (1 m voxels) it doe
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from bag_writer import _store, laser
+from conftest import cli
 
 RANGE_MAX = 3.5
 BEAMS = 360
@@ -93,3 +96,24 @@ def test_odometry_at_its_defaults_follows_a_2d_scanner_within_3_cm(room_bag):
     with pytest.warns(VoxtoolWarning, match="may have diverged: .* scans with fewer than 30 points"):
         old = estimate_poses(path, SourceOptions(), OdometryParams(max_range=100.0, planar=False), progress=False)
     assert _ate(old, truth) > 2 * _ate(result, truth)
+
+
+def test_a_simulated_turtlebot3_log_others_recorded(tb3_bag, tmp_path):
+    """A Gazebo TurtleBot3 bag from a public repository (/scan alone, nothing poses it): `build`
+    refuses it in one line naming `voxtool odometry`; odometry at its defaults takes the scanner's
+    range_max and the plane, is not flagged, and its poses build a map whose walls are thin."""
+    pytest.importorskip("kiss_icp")
+    code, _, err = cli("build", tb3_bag, "-o", tmp_path / "m.vxm", "--no-progress")
+    assert code == 3 and "voxtool odometry" in err and not (tmp_path / "m.vxm").exists()
+    code, text, err = cli("odometry", tb3_bag, "-o", tmp_path / "p.txt", "--json", "--no-progress")
+    assert code == 0 and err == "", err
+    got = json.loads(text)
+    assert got["scans"] == 538 and got["params"]["planar"] and got["params"]["max_range_from"] == "the data"
+    assert not got["plausibility"]["suspect"] and 5.0 < got["path_m"] < 25.0
+    code, text, err = cli("build", tb3_bag, "--poses", tmp_path / "p.txt", "-o", tmp_path / "m.vxm",
+                          "--resolution", "0.05", "--json", "--no-progress")
+    assert code == 0, err
+    built = json.loads(text)
+    # the arena's walls from 538 scans: 849 occupied voxels here; the old fixed 100 m range (1 m
+    # voxels, every scan flagged as too sparse to register) smeared them over 1,319
+    assert built["scans"] == 538 and 300 < built["occupied_voxels"] < 1100
