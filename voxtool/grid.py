@@ -90,14 +90,13 @@ def footprint(leaf_sets) -> tuple[int, int, int, int]:
 
 def project_sets(leaf_sets, resolution: float, z_range: tuple[float, float] | None = None) -> Grid2D:
     """project() of a map given as `leaf_sets()`: a fresh iterator of (leaves, threshold
-    log-odds) each call (a sharded map's parts), read twice: for the grid's extent, then to paint;
-    memory is bounded by a set and the grid."""
+    log-odds) each call (a sharded map's parts), read three times: for the grid's extent (the
+    map's footprint, whatever the band), then to paint free and occupied cells; memory is bounded
+    by a set and the grid."""
     x0, y0, width, height = footprint(leaf_sets)
-    if z_range is not None and not any(_in_range(leaves, resolution, z_range)[0].shape[0]
-                                       for leaves, _ in leaf_sets()):
-        raise ParameterError("no voxel of the map lies in the --z-range")
     if width * height > 1 << 31:
-        raise ParameterError(f"the grid would have {width} x {height} cells; give a --z-range or --crop")
+        # every grid spans the map's footprint, so a --z-range no longer makes it smaller
+        raise ParameterError(f"the grid would have {width} x {height} cells; --crop the map first")
     paint = np.zeros(width * height, dtype=np.uint8)  # 0 unknown, 1 free, 2 occupied: the highest wins
     for state in (1, 2):  # occupied painted last, over every set's free cells: it wins a cell
         for leaves, threshold_log in leaf_sets():
@@ -110,6 +109,8 @@ def project_sets(leaf_sets, resolution: float, z_range: tuple[float, float] | No
                 step = max(1, _PAINT_CELLS // square.size)
                 for i in range(0, base.shape[0], step):
                     paint[(base[i:i + step, None] + square[None, :]).ravel()] = state
+    if z_range is not None and not paint.any():  # every voxel in the band paints its cell
+        raise ParameterError("no voxel of the map lies in the --z-range")
     cells = np.array([UNKNOWN, FREE, OCCUPIED], dtype=np.int8)[paint].reshape(height, width)
     origin = ((x0 - TREE_MAX_VAL) * resolution, (y0 - TREE_MAX_VAL) * resolution)
     return Grid2D(cells, resolution, origin, z_range)

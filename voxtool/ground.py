@@ -185,25 +185,32 @@ def _supported_floor(codes, column, x0, y0, rows, cols, support, lowest):
         r, col = y // column - y0, x // column - x0
         if z >= floor[r, col] or z < lowest[r, col]:
             continue
-        found = 0
-        for dx in range(-1, 2):
-            for dy in range(-1, 2):
-                if dx == 0 and dy == 0:
-                    continue
-                # the three voxels z-1..z+1 of a neighbouring column are consecutive codes
-                lo = ((x + dx) << 32) | ((y + dy) << 16) | (z - 1)
-                j = np.searchsorted(codes, lo)
-                while j < n and codes[j] <= lo + 2:
-                    found += 1
-                    j += 1
-                if found >= support:
-                    break
-            if found >= support:
-                break
-        if found >= support:
-            floor[r, col] = z
-            which[r, col] = i
+        if support > 0 and _neighbours(codes, x, y, z, support) < support:
+            continue
+        floor[r, col] = z
+        which[r, col] = i
     return floor, which
+
+
+@njit(cache=True, nogil=True)
+def _neighbours(codes, x, y, z, most):
+    """How many of the 24 voxels beside (x, y, z) (the 8 columns around, one layer down to one up)
+    are among the sorted codes, counted up to `most`."""
+    n = codes.shape[0]
+    found = 0
+    for dx in range(-1, 2):
+        for dy in range(-1, 2):
+            if dx == 0 and dy == 0:
+                continue
+            # the three voxels z-1..z+1 of a neighbouring column are consecutive codes
+            lo = ((x + dx) << 32) | ((y + dy) << 16) | (z - 1)
+            j = np.searchsorted(codes, lo)
+            while j < n and codes[j] <= lo + 2:
+                found += 1
+                j += 1
+            if found >= most:
+                return found
+    return found
 
 
 def _typical_floor(floor: np.ndarray, block: int, quantile: float) -> np.ndarray:

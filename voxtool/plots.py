@@ -167,17 +167,15 @@ def _nearest_pixels(u: np.ndarray, w: np.ndarray, depth: np.ndarray, extent, sha
     each lit pixel (flat index, ascending) and the point it shows, the one of greatest `depth`
     (nearest the viewer; of equal ones the last), as a scatter plot drawn in that order would.
     PIXEL_CHUNK points at a time, in float64, each chunk's winners against the raster's so far:
-    18.7 M points at once took 2 GB. `among`: only these points, read a chunk at a time: indices
-    (the result's index into them, as if u[among] were given) or a mask (the result's index into
-    all the points)."""
+    18.7 M points at once took 2 GB. `among`: a mask of the points to place (None: all); the
+    indices returned are into all the points."""
     rows, cols = shape
     u0, u1, w0, w1 = extent
     best_depth = np.full(rows * cols, -np.inf)
     best = np.full(rows * cols, -1, dtype=np.int64)
-    for a in range(0, len(u) if among is None else len(among), PIXEL_CHUNK):
-        pick = slice(a, a + PIXEL_CHUNK) if among is None else among[a:a + PIXEL_CHUNK]
-        if among is not None and among.dtype == bool:  # a mask: its points of this chunk of all points
-            pick = np.flatnonzero(pick) + a
+    for a in range(0, len(u), PIXEL_CHUNK):
+        b = min(a + PIXEL_CHUNK, len(u))
+        pick = np.arange(a, b) if among is None else np.flatnonzero(among[a:b]) + a
         uu, ww, dd = (np.asarray(v[pick], dtype=np.float64) for v in (u, w, depth))
         col = np.floor((uu - u0) / max(u1 - u0, 1e-9) * cols).astype(np.int64)
         row = np.floor((ww - w0) / max(w1 - w0, 1e-9) * rows).astype(np.int64)
@@ -188,7 +186,7 @@ def _nearest_pixels(u: np.ndarray, w: np.ndarray, depth: np.ndarray, extent, sha
         p, i = pixel[order][last], inside[order][last]
         better = dd[i] >= best_depth[p]  # a later chunk's point of equal depth is drawn over
         best_depth[p[better]] = dd[i[better]]
-        best[p[better]] = pick[i[better]] if isinstance(pick, np.ndarray) and among.dtype == bool else i[better] + a
+        best[p[better]] = pick[i[better]]
     lit = np.flatnonzero(best >= 0)
     return lit, best[lit]
 

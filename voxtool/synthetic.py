@@ -238,8 +238,7 @@ class PoseError:
     roll_pitch_deg: float = 0.05
     heading_deg: float = 0.1
     # a real INS also drifts, the same way for seconds: against LiDAR odometry over 6 s of KITTI raw
-    # frames, z moved 35 cm and pitch 0.4 degrees. drift: (z m/s, pitch deg/s) at scan time t,
-    # with the signs `drift_signs` (0: none)
+    # frames, z moved 35 cm and pitch 0.4 degrees. The drift's rates (0: none), applied at scan time t
     drift_z_m_s: float = 0.0
     drift_pitch_deg_s: float = 0.0
 

@@ -138,6 +138,7 @@ def figure(raster: Raster, resolution: float, label: str):
     occupied = state == OCCUPIED
     values = raster.values_m(resolution)
     norm = None
+    one_height = False  # every occupied pixel at one height: one colour, no colour bar
     above = getattr(raster, "ground", None) is not None
     if raster.layer is not None:
         rgb[occupied] = SLICE_RGB
@@ -151,8 +152,9 @@ def figure(raster: Raster, resolution: float, label: str):
         rgb[occupied & np.isnan(values)] = NO_GROUND_RGB
     elif occupied.any():
         lo, hi, clipped = colour_range(values[occupied], resolution)
-        raster.colour_range = None if hi == lo else (lo, hi, clipped)
-        if hi == lo:  # one height: one colour, and nothing for a colour bar to scale
+        one_height = hi == lo
+        raster.colour_range = None if one_height else (lo, hi, clipped)
+        if one_height:  # nothing for a colour bar to scale
             rgb[occupied] = colormaps[COLORMAP](0.5)[:3]
         else:
             norm = Normalize(lo, hi)
@@ -177,7 +179,6 @@ def figure(raster: Raster, resolution: float, label: str):
                Patch(facecolor=UNKNOWN_RGB, edgecolor="0.5", label="unknown")]
     if raster.layer is not None:
         handles.insert(0, Patch(facecolor=SLICE_RGB, label="occupied"))
-    one_height = getattr(raster, "colour_range", "") is None
     if one_height:
         z0 = float(np.nanmin(values[occupied]))
         handles.insert(0, Patch(facecolor=colormaps[COLORMAP](0.5)[:3], label=f"occupied (all at {z0:.3g} m)"))

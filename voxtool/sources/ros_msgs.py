@@ -138,8 +138,7 @@ def scan_messages(items: Iterator, decode: Callable, poses, where: str, topic: s
     from voxtool.sources.tf import NoPoseSource, OutsideTransforms, header_stamp
 
     kind = msgtype.rsplit("/", 1)[-1]
-    unposed: dict[bool, list[int]] = {True: [], False: []}  # before the first transform / after the last
-    missed: list = []  # the first scan left out (its error) and the stamps of all that were
+    missed: list = []  # (index, OutsideTransforms, stamp) of each scan left out for want of a pose at its time
     posed = 0
     try:
         while True:
@@ -161,8 +160,7 @@ def scan_messages(items: Iterator, decode: Callable, poses, where: str, topic: s
                     stamp = header_stamp(msg.header)
                     pose = poses.pose_at(msg.header.frame_id, stamp)
                 except OutsideTransforms as err:
-                    unposed[err.before].append(index)
-                    missed.append((err, stamp))
+                    missed.append((index, err, stamp))
                 except NoPoseSource:
                     raise  # no scan of the log can be posed: one line, whatever --bad-scans says
                 except (SourceError, *errors) as err:
@@ -176,27 +174,29 @@ def scan_messages(items: Iterator, decode: Callable, poses, where: str, topic: s
                     yield index, points, pose, stamp, nbytes, (misses, miss_range)
             index += 1
     finally:
-        _report_unposed(where, topic, unposed, on_bad, missed[0][0] if missed else None)
+        _report_unposed(where, topic, missed, on_bad)
     if missed and not posed:
         raise NoPoseSource(_none_posed(where, topic, missed))
 
 
 def _none_posed(where: str, topic: str, missed: list) -> str:
     """Why no scan of a log could be posed: the poses' stamps against the scans'."""
-    err = missed[0][0]
-    stamps = [stamp for _, stamp in missed]
+    err = missed[0][1]
+    stamps = [stamp for _, _, stamp in missed]
     source = f"pose topic '{err.pose_topic}'" if err.pose_topic else "/tf's chain to the scan frame"
     return (f"{where}: none of its {len(missed)} scans on '{topic}' can be posed: they span "
             f"{min(stamps) / 1e9:.3f}..{max(stamps) / 1e9:.3f} s, the {source} {err.span[0] / 1e9:.3f}.."
             f"{err.span[1] / 1e9:.3f} s (two clocks? a simulator's time beside the sensor's)")
 
 
-def _report_unposed(where: str, topic: str, unposed: dict[bool, list[int]], on_bad, first=None) -> None:
+def _report_unposed(where: str, topic: str, missed: list, on_bad) -> None:
     """One warning line for the scans left out for want of a transform (or a pose topic's pose)
-    at their time; `first`: the OutsideTransforms of the first, which says which."""
-    before, after = unposed[True], unposed[False]
-    if not before and not after:
+    at their time (`missed`: scan_messages'; the first's error says which)."""
+    if not missed:
         return
+    before = [index for index, err, _ in missed if err.before]
+    after = [index for index, err, _ in missed if not err.before]
+    first = missed[0][1]
     import warnings
 
     from voxtool.errors import VoxtoolWarning
@@ -204,13 +204,13 @@ def _report_unposed(where: str, topic: str, unposed: dict[bool, list[int]], on_b
     record = getattr(on_bad, "unposed_scans", None)
     if record is not None:
         record(before, after)
-    what = first.what if first is not None else "transform"
+    what = first.what
     parts = []
     if before:
         parts.append(f"{_indices(before)} taken before the first {what} that poses {'it' if len(before) == 1 else 'them'}")
     if after:
         parts.append(f"{_indices(after)} taken after the last")
-    why = ", as a tf message filter drops them" if first is None or first.pose_topic is None else ""
+    why = ", as a tf message filter drops them" if first.pose_topic is None else ""
     warnings.warn(f"{where}: left out {' and '.join(parts)} (topic '{topic}'){why}", VoxtoolWarning, stacklevel=3)
 
 
