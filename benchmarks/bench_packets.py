@@ -8,6 +8,7 @@
     python benchmarks/bench_packets.py codecs [--runs 2]          # whole `encode`, zstd vs cm: first run and warm
     python benchmarks/bench_packets.py onboard                    # per packet at the paper's setting, vs its Table IV
     python benchmarks/bench_packets.py disk [--log-mb 120] [--base REV] [--repeats 5]  # stats / merge / decode vs build
+    python benchmarks/bench_packets.py long [--scans 141] [--base REV] [--repeats 3]  # the same on a 9,000-packet log
 
 Prints tables and writes bench-results/packets_<mode>.json.
 """
@@ -385,10 +386,11 @@ def onboard(data: Path) -> dict:
     return {"rows": rows, "paper_table_iv_ms": PAPER_TABLE_IV_MS}
 
 
-def _run(args: list, tree: Path | None = None) -> tuple[float, float]:
+def _run(args: list, tree: Path | None = None, stdout: list | None = None) -> tuple[float, float]:
     """A whole voxtool command (of the revision checked out at `tree`, or the installed one):
-    (seconds from start to exit, its own peak memory in MiB). It runs in the temporary folder:
-    from the checkout, `python -m` would import this checkout's voxtool whatever PYTHONPATH says."""
+    (seconds from start to exit, its own peak memory in MiB); what it printed is appended to
+    `stdout` if given. It runs in the temporary folder: from the checkout, `python -m` would
+    import this checkout's voxtool whatever PYTHONPATH says."""
     import os
 
     sys.path.insert(0, str(Path(__file__).parent))
@@ -400,6 +402,8 @@ def _run(args: list, tree: Path | None = None) -> tuple[float, float]:
     wall, rss, code = json.loads(proc.stderr.strip().splitlines()[-1])
     if code != 0:
         raise SystemExit(f"voxtool {' '.join(map(str, args))} failed: {proc.stderr.strip().splitlines()[-2:]}")
+    if stdout is not None:
+        stdout.append(proc.stdout)
     return wall, rss / 2**20
 
 
@@ -511,13 +515,141 @@ def disk(data: Path, log_mb: float, base: str | None = None, repeats: int = 5) -
     return {"rows": rows}
 
 
+def replay_scans(src: Path, out: Path, scans: int, lap_m: float) -> None:
+    """A long drive from a short one: the PCD scans of `src` (sensor frame, VIEWPOINT poses)
+    written again lap after lap until there are `scans`, each lap `lap_m` further along the
+    drive's direction (first to last viewpoint, level), so that every lap maps new ground."""
+    from voxtool.io.export import pcd_header, pcd_rows
+    from voxtool.sources.pcd import read_pcd
+
+    clouds = [read_pcd(f) for f in sorted(src.glob("*.pcd"))]
+    first, last = np.array(clouds[0].viewpoint[:3]), np.array(clouds[-1].viewpoint[:3])
+    ahead = last - first
+    ahead[2] = 0
+    ahead /= np.linalg.norm(ahead)
+    out.mkdir(parents=True, exist_ok=True)
+    for i in range(scans):
+        cloud = clouds[i % len(clouds)]
+        viewpoint = list(cloud.viewpoint)
+        viewpoint[:3] = list(np.array(viewpoint[:3]) + (i // len(clouds)) * lap_m * ahead)
+        xyz = np.asarray(cloud.xyz, np.float32)
+        (out / f"{i:06d}.pcd").write_bytes(pcd_header(len(xyz), False, False, tuple(viewpoint)) + pcd_rows(xyz, None))
+
+
+CODECS = {"zstd": ["--scheme", "hilbert", "--codec", "zstd"], "cm": ["--scheme", "nested", "--codec", "cm"]}
+
+
+def long(data: Path, scans: int = 141, lap_m: float = 180.0, base: str | None = None, repeats: int = 3) -> dict:
+    """Whole commands at 0.2 m and unlimited range on two streams: a long drive (kaist03's 21
+    Ouster scans replayed `scans` long, each lap `lap_m` further on: ~9,400 zstd packets, 48 MB)
+    and kaist03 itself. Per codec (hilbert/zstd, nested/cm): `encode --json` (its time_encode_s
+    against its time_map_s), `merge` and `decode` of the log against `build` of the same scans
+    (ratios paired run by run, medians), and `stats`. Then, on the long drive only, per-packet
+    costs against the log's length (encode and merge of its first third, two thirds, all).
+    `base`: the same commands of another revision too, run alternately with this one's."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from worktree import check_imports, revision
+
+    rows, growth = [], []
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+        tmp = Path(tmp)
+        trees = [("now", None)]
+        if base is not None:
+            tree = stack.enter_context(revision(base, tmp))
+            check_imports(tree, Path(tempfile.gettempdir()))
+            trees.insert(0, (base, tree))
+        streams = {"long": tmp / "long", "kaist03": data / "kaist03" / "pcd"}
+        replay_scans(data / "kaist03" / "pcd", streams["long"], scans, lap_m)
+        common = ["--resolution", "0.2", "--robot", "r1"]
+        commands = []
+        for stream, scans_dir in streams.items():
+            commands.append((stream, "build", ["build", scans_dir, "--resolution", "0.2", "-o", tmp / "b.vxm"]))
+            for codec, flags in CODECS.items():
+                log = tmp / f"{stream}_{codec}.mcap"
+                commands += [(stream, f"encode {codec}", ["encode", scans_dir, "-o", log, *common, *flags, "--json"]),
+                             (stream, f"stats {codec}", ["stats", log]),
+                             (stream, f"merge {codec}", ["merge", log, "-o", tmp / "m.vxm"]),
+                             (stream, f"decode {codec}", ["decode", log, "-o", tmp / "d.vxm"])]
+        runs: dict[tuple, list] = {}
+        encode_json: dict[tuple, list] = {}
+        for _, tree in trees:  # kaist03's commands once, untimed: every revision's kernels compiled
+            for stream, _, args in commands:
+                if stream == "kaist03":
+                    _run(args, tree)
+        # the runs alternate between commands and revisions, so that the machine's drift
+        # (20-30 % between minutes) falls on all of them alike
+        for _ in range(repeats):
+            for name, tree in trees:
+                for stream, command, args in commands:
+                    out: list = []
+                    runs.setdefault((name, stream, command), []).append(_run(args, tree, out))
+                    if command.startswith("encode"):
+                        encode_json.setdefault((name, stream, command), []).append(json.loads(out[-1]))
+        for name, _ in trees:
+            for stream in streams:
+                build = runs[(name, stream, "build")]
+                for stream_, command, _args in commands:
+                    if stream_ != stream:
+                        continue
+                    times = runs[(name, stream, command)]
+                    row = {"revision": name, "stream": stream, "command": command,
+                           "seconds": round(float(np.median([t for t, _ in times])), 3), "runs": len(times),
+                           "peak_rss_mib": round(float(np.median([m for _, m in times])), 1)}
+                    if command.startswith(("merge", "decode")):
+                        row["vs_build"] = round(float(np.median([t / b for (t, _), (b, _) in zip(times, build)])), 3)
+                        row["memory_vs_build"] = round(float(np.median([m / b for (_, m), (_, b) in zip(times, build)])), 3)
+                    if command.startswith("encode"):
+                        reports = encode_json[(name, stream, command)]
+                        row.update(time_map_s=round(float(np.median([r["time_map_s"] for r in reports])), 3),
+                                   time_encode_s=round(float(np.median([r["time_encode_s"] for r in reports])), 3),
+                                   encode_vs_map=round(float(np.median([r["time_encode_s"] / r["time_map_s"]
+                                                                        for r in reports])), 3),
+                                   packets=reports[-1]["packets"], log_mb=round(reports[-1]["bytes"] / 1e6, 2))
+                    rows.append(row)
+        # per packet against the log's length (this revision only): the first third, two thirds, all
+        files = sorted(streams["long"].glob("*.pcd"))
+        for share in (1 / 3, 2 / 3, 1.0):
+            part = tmp / f"part{share:.2f}"
+            part.mkdir()
+            for f in files[:max(1, round(share * len(files)))]:
+                (part / f.name).symlink_to(f)
+            for codec, flags in CODECS.items():
+                out = []
+                log = tmp / f"part_{codec}.mcap"
+                _run(["encode", part, "-o", log, *common, *flags, "--json"], None, out)
+                report = json.loads(out[-1])
+                merge_s, _ = _run(["merge", log, "-o", tmp / "m.vxm"])
+                growth.append({"scans": len(list(part.iterdir())), "codec": codec, "packets": report["packets"],
+                               "log_mb": round(report["bytes"] / 1e6, 2),
+                               "encode_ms_per_packet": round(1e3 * report["time_encode_s"] / report["packets"], 3),
+                               "map_ms_per_scan": round(1e3 * report["time_map_s"] / report["scans"], 2),
+                               "merge_ms_per_packet": round(1e3 * merge_s / report["packets"], 3)})
+    print(f"{'revision':<10} {'stream':<8} {'command':<13} {'seconds':>8} {'peak MiB':>9}  figure")
+    for r in rows:
+        figure = ""
+        if "encode_vs_map" in r:
+            figure = (f"encode {r['time_encode_s']:.2f} s vs map {r['time_map_s']:.2f} s ({r['encode_vs_map']:.2f}x), "
+                      f"{r['packets']} packets, {r['log_mb']} MB")
+        elif "vs_build" in r:
+            figure = f"{r['vs_build']:.2f}x build's time, {r['memory_vs_build']:.2f}x its memory"
+        print(f"{r['revision']:<10} {r['stream']:<8} {r['command']:<13} {r['seconds']:>8.2f} {r['peak_rss_mib']:>9.0f}  {figure}")
+    print(f"\n{'scans':>6} {'codec':<5} {'packets':>8} {'log MB':>7} {'encode ms/packet':>17} {'map ms/scan':>12} "
+          f"{'merge ms/packet':>16}")
+    for g in growth:
+        print(f"{g['scans']:>6} {g['codec']:<5} {g['packets']:>8} {g['log_mb']:>7} {g['encode_ms_per_packet']:>17} "
+              f"{g['map_ms_per_scan']:>12} {g['merge_ms_per_packet']:>16}")
+    return {"scans": scans, "lap_m": lap_m, "repeats": repeats, "rows": rows, "per_packet_by_length": growth}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("mode", choices=["fig5", "streams", "intervals", "throughput", "split", "lossless", "codecs",
-                                     "onboard", "disk"])
+                                     "onboard", "disk", "long"])
     ap.add_argument("--log-mb", type=float, default=120.0, help="disk: the long log's size for `stats`")
-    ap.add_argument("--base", default=None, help="disk: also run the commands of this git revision (before/after)")
-    ap.add_argument("--repeats", type=int, default=5, help="disk: runs of each command (the median is reported)")
+    ap.add_argument("--base", default=None, help="disk, long: also run the commands of this git revision (before/after)")
+    ap.add_argument("--repeats", type=int, default=None,
+                    help="disk, long: runs of each command (the median is reported; default 5 and 3)")
+    ap.add_argument("--scans", type=int, default=141, help="long: scans of the long drive (141: ~9,400 packets)")
     ap.add_argument("--samples", type=int, default=10)
     ap.add_argument("--runs", type=int, default=2, help="codecs: warm runs of each codec (the best is kept)")
     ap.add_argument("--pcd", action="store_true", help="streams: the PCD directories instead of the MCAP files")
@@ -527,7 +659,8 @@ def main() -> None:
               "intervals": lambda: intervals(Path(args.data)), "throughput": throughput,
               "split": lambda: split(Path(args.data)), "lossless": lambda: lossless(Path(args.data)),
               "codecs": lambda: codecs(Path(args.data), args.runs), "onboard": lambda: onboard(Path(args.data)),
-              "disk": lambda: disk(Path(args.data), args.log_mb, args.base, args.repeats)}[args.mode]()
+              "disk": lambda: disk(Path(args.data), args.log_mb, args.base, args.repeats or 5),
+              "long": lambda: long(Path(args.data), args.scans, base=args.base, repeats=args.repeats or 3)}[args.mode]()
     OUT.mkdir(exist_ok=True)
     suffix = "_pcd" if args.pcd and args.mode == "streams" else ""
     (OUT / f"packets_{args.mode}{suffix}.json").write_text(json.dumps(result, indent=2, default=str))

@@ -6,6 +6,7 @@ a dense grid packed cell by cell, and a lexicographic sort of every change."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -34,6 +35,36 @@ def test_ranks_and_cells_are_the_curve_of_every_cell(dims, seed, share):
     assert np.array_equal(ranks, rank_of[idx])
     back = cells_at(np.sort(ranks), dims)
     assert np.array_equal(back[:, 0] + dims[0] * (back[:, 1] + dims[1] * back[:, 2]), order[np.sort(ranks)])
+
+
+@pytest.mark.parametrize("dims", [(300, 200, 3), (1000, 2, 2), (2, 3, 1500), (64, 64, 64), (90, 70, 33)])
+def test_ranks_of_cells_in_morton_order_on_large_and_flat_boxes(dims):
+    """A packet's cells come in Morton order, which the rank walk reuses (each cell's descent
+    starts where it leaves the one before); duplicates get the same rank. Against the curve of
+    every cell, on boxes far from cubes (levels across the box's faces) and up to 2^11 a side."""
+    from voxtool.keys import morton_encode
+
+    order = box_order(*dims)
+    rank_of = np.empty(order.shape[0], np.int64)
+    rank_of[order] = np.arange(order.shape[0])
+    idx, rel, rng = _cells(dims, 7, 0.05)
+    idx = np.concatenate([idx, idx[:50]])  # some cells twice
+    rel = np.stack([idx % dims[0], (idx // dims[0]) % dims[1], idx // (dims[0] * dims[1])], axis=1)
+    by_morton = np.argsort(morton_encode(rel + 1000), kind="stable")
+    assert np.array_equal(ranks_of(rel[by_morton], dims), rank_of[idx[by_morton]])
+
+
+def test_code_keys_is_morton_decode():
+    from voxtool.kernels.morton import code_keys
+    from voxtool.keys import morton_decode, morton_encode
+
+    keys = np.random.default_rng(3).integers(0, 65536, (5000, 3)).astype(np.uint16)
+    keys[0] = 65535
+    keys[1] = 0
+    codes = morton_encode(keys)
+    out = np.empty((codes.shape[0], 3), np.uint16)
+    code_keys(codes, out)
+    assert np.array_equal(out, keys) and np.array_equal(out, morton_decode(codes))
 
 
 @settings(max_examples=120)

@@ -13,6 +13,7 @@ import numpy as np
 from voxtool.codec.log import PacketLogWriter
 from voxtool.codec.packet import FREE, OCCUPIED, UNKNOWN, encode_packet, keyframe_packet, occupied_frame
 from voxtool.errors import ParameterError
+from voxtool.kernels.morton import code_keys
 from voxtool.keys import key_bounds, morton_decode
 from voxtool.maps.base import MapBackend, removed_voxels, update_codes
 from voxtool.parallel import one_blas_thread, resolve_threads, run_parts
@@ -65,14 +66,18 @@ def voxel_states(values: np.ndarray, threshold_log: float) -> np.ndarray:
 MAX_PLANE = 1 << 24  # cells in one z-plane of a box (a cm coder keeps three planes of classes)
 
 
-def split_changes(codes: np.ndarray, max_count: int, density: int = 256) -> list[tuple[int, int]]:
+def split_changes(codes: np.ndarray, max_count: int, density: int = 256,
+                  keys: np.ndarray | None = None) -> list[tuple[int, int]]:
     """Split Morton-sorted changed voxels into runs of at most `max_count` whose bounding box
     holds at most max(density * count, 2^18) cells (density 0: no volume limit, but at most
-    2^30 cells and MAX_PLANE cells a plane), cutting at octree node boundaries.
+    2^30 cells and MAX_PLANE cells a plane), cutting at octree node boundaries. `keys`: the
+    codes' keys (morton_decode), when the caller has them.
 
     Our choice (formats/packet.md): one box over a long-range LiDAR scan's changes spans the
     whole sensor range and is mostly 'unchanged' cells; octree-aligned runs keep boxes compact."""
     out: list[tuple[int, int]] = []
+    if keys is None:
+        keys = morton_decode(codes)
     stack = [(0, codes.shape[0])]
     while stack:
         a, b = stack.pop()
@@ -83,7 +88,7 @@ def split_changes(codes: np.ndarray, max_count: int, density: int = 256) -> list
             if n == 1:
                 out.append((a, b))
                 continue
-            lo, hi = key_bounds(morton_decode(codes[a:b]))
+            lo, hi = key_bounds(keys[a:b])
             dims = hi - lo + 1
             cells = int(np.prod(dims))
             fits = cells <= 1 << 30 and int(dims[0] * dims[1]) <= MAX_PLANE if density <= 0 else \
@@ -168,9 +173,13 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
 
         def emit(stamp: int) -> None:
             nonlocal seq, pend_codes, pend_states
+            # the keys once (one compiled pass): the split and every packet take slices of them
+            pend_keys = np.empty((pend_codes.shape[0], 3), np.uint16)
+            code_keys(pend_codes, pend_keys)
             if opts.scheme in ("hilbert", "nested"):
                 # cm spends next to nothing on empty cells (docs/packets.md): boxes split by count only
-                runs = split_changes(pend_codes, opts.max_changes, density=0 if opts.codec in ("cm", "cm1") else 256)
+                runs = split_changes(pend_codes, opts.max_changes, density=0 if opts.codec in ("cm", "cm1") else 256,
+                                     keys=pend_keys)
             elif opts.scheme == "racer":
                 runs = [(a, min(a + opts.max_changes, pend_codes.shape[0]))
                         for a in range(0, max(pend_codes.shape[0], 1), opts.max_changes)]
@@ -178,7 +187,7 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
                 runs = [(0, pend_codes.shape[0])]
             def packet(job: tuple[int, tuple[int, int]]) -> tuple[bytes, int]:
                 k, (a, b) = job
-                keys = morton_decode(pend_codes[a:b]).astype(np.int64)
+                keys = pend_keys[a:b]
                 box, cells = None, 0
                 if opts.scheme == "racer":
                     box = (map_lo, map_hi - map_lo + 1)
@@ -234,7 +243,7 @@ def encode_stream(stream: ScanStream, backend: MapBackend, output, opts: EncodeO
                     codes, before, after = codes[order], before[order], after[order]
                 rep.time_map_s += time.perf_counter() - t0
                 changed = before != after
-                if changed.any():  # running box of every voxel that ever changed: RACER's address space
+                if opts.scheme == "racer" and changed.any():  # the box of every voxel that ever changed: RACER's addresses
                     ck_lo, ck_hi = key_bounds(morton_decode(codes[changed]))
                     map_lo = np.minimum(map_lo, ck_lo)
                     map_hi = np.maximum(map_hi, ck_hi)

@@ -199,92 +199,74 @@ def _order(dx: int, dy: int, dz: int) -> np.ndarray:
 
 
 # Placing only the changed cells. A delta's box is mostly "unchanged" cells (kaist03 at full range:
-# 1.07 G cells for 9.5 M changes), so instead of the order of every cell (8 bytes each) the walk
-# below visits only the sub-cubes that hold a given cell and steps over the others by their
-# in-box volume: the rank of each given cell on the curve, in time proportional to the cells'
-# ancestors, not to the box. `cells_at` is its inverse (ranks to cells), for decoding.
+# 1.07 G cells for 9.5 M changes), so instead of the order of every cell (8 bytes each) each given
+# cell is found by one descent from the cube to the cell: its rank is the in-box volume of the
+# sub-cubes the curve visits before it, summed level by level. `cells_at` is its inverse (ranks to
+# cells), for decoding.
+
+
+@lru_cache(maxsize=1)
+def digit_table() -> np.ndarray:
+    """DIGIT[state, octant]: the digit on the curve at which a state visits an octant (the
+    inverse of OCTANT in state_tables)."""
+    octant, _ = state_tables()
+    digit = np.empty_like(octant)
+    for s in range(octant.shape[0]):
+        digit[s, octant[s]] = np.arange(8)
+    return digit
 
 
 @njit(cache=True, nogil=True)
-def _lower_bound(a, lo, hi, value):
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if a[mid] < value:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
+def _ranks(rel, dx, dy, dz, bits, octant, digit, nxt, out):
+    """out[i]: the rank on the box's curve of cell rel[i] (inside the box anchored at 0).
 
-
-@njit(cache=True, nogil=True)
-def relative_morton(rel, bits):
-    """Morton codes (x in the lowest bit of each 3-bit digit) of cells (N, 3) of a cube of 2^bits."""
-    out = np.zeros(rel.shape[0], dtype=np.int64)
+    Below a sub-cube that lies wholly in the box, every sibling before the cell's is whole too:
+    the rank grows by digit * volume, one table step a level. Only sub-cubes across the box's far
+    faces need their earlier siblings' in-box volumes added one by one. Cells in Morton order
+    (as a packet's are) share their leading levels with the cell before: the descent is taken
+    again from the first level where the two differ."""
+    # per level of the last descent: state, corner and rank on entering it, and whether it is whole
+    path = np.zeros((bits + 1, 6), dtype=np.int64)
+    px = py = pz = -1
     for i in range(rel.shape[0]):
-        c = 0
-        for b in range(bits):
-            c |= ((rel[i, 0] >> b) & 1) << (3 * b)
-            c |= ((rel[i, 1] >> b) & 1) << (3 * b + 1)
-            c |= ((rel[i, 2] >> b) & 1) << (3 * b + 2)
-        out[i] = c
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _digit_bounds(codes, lo, hi, base, span, bounds, row):
-    """bounds[row, d]..bounds[row, d + 1]: the codes[lo:hi] in child d (Morton digit) of a node
-    whose codes start at `base`, each child `span` codes long."""
-    bounds[row, 0] = lo
-    if hi - lo <= 16:  # few codes: one pass
-        k = lo
-        for d in range(1, 8):
-            limit = base + d * span
-            while k < hi and codes[k] < limit:
-                k += 1
-            bounds[row, d] = k
-    else:
-        for d in range(1, 8):
-            bounds[row, d] = _lower_bound(codes, bounds[row, d - 1], hi, base + d * span)
-    bounds[row, 8] = hi
-
-
-@njit(cache=True, nogil=True)
-def _ranks(codes, dx, dy, dz, bits, octant, nxt, out):
-    """out[i]: the rank on the box's curve of the cell whose relative Morton code is codes[i]
-    (codes sorted, unique, every cell inside the box)."""
-    n = codes.shape[0]
-    if bits == 0:
-        for i in range(n):
-            out[i] = 0
-        return
-    stack = _open_stack(bits)
-    base_of = np.zeros(bits + 1, dtype=np.int64)  # each open sub-cube's first Morton code
-    bounds = np.zeros((bits + 1, 9), dtype=np.int64)  # each open sub-cube's codes, split by child digit
-    _digit_bounds(codes, 0, n, 0, 1 << (3 * (bits - 1)), bounds, 0)
-    rank = 0
-    lvl = 0
-    while lvl >= 0:
-        h, o, half, x, y, z = _next_child(stack, lvl, bits, octant)
-        if h < 0:
-            lvl -= 1
-            continue
-        if x >= dx or y >= dy or z >= dz:
-            continue
-        lo = bounds[lvl, o]
-        hi = bounds[lvl, o + 1]
-        if lo == hi:
-            rank += min(half, dx - x) * min(half, dy - y) * min(half, dz - z)  # step over it
-            continue
-        if half == 1:
-            out[lo] = rank
-            rank += 1
-            continue
-        base = base_of[lvl] + o * half * half * half
-        _open(stack, lvl + 1, nxt[stack[lvl, STATE], h], x, y, z)
-        lvl += 1
-        base_of[lvl] = base
-        quarter = half >> 1
-        _digit_bounds(codes, lo, hi, base, quarter * quarter * quarter, bounds, lvl)
+        x, y, z = rel[i, 0], rel[i, 1], rel[i, 2]
+        start = 0
+        if i > 0:
+            d = (x ^ px) | (y ^ py) | (z ^ pz)
+            if d == 0:
+                out[i] = out[i - 1]
+                continue
+            top = 0
+            while d >> (top + 1):
+                top += 1
+            start = bits - 1 - top
+        px, py, pz = x, y, z
+        state, cx, cy, cz, rank, whole = path[start, 0], path[start, 1], path[start, 2], path[start, 3], \
+            path[start, 4], path[start, 5] != 0
+        for lvl in range(start, bits):
+            shift = bits - lvl - 1
+            half = np.int64(1) << shift
+            o = ((x >> shift) & 1) | (((y >> shift) & 1) << 1) | (((z >> shift) & 1) << 2)
+            h = digit[state, o]
+            if not whole:
+                whole = cx + 2 * half <= dx and cy + 2 * half <= dy and cz + 2 * half <= dz
+            if whole:
+                rank += h * half * half * half
+            else:
+                for hh in range(h):
+                    oo = octant[state, hh]
+                    sx = cx + (oo & 1) * half
+                    sy = cy + ((oo >> 1) & 1) * half
+                    sz = cz + ((oo >> 2) & 1) * half
+                    if sx < dx and sy < dy and sz < dz:
+                        rank += min(half, dx - sx) * min(half, dy - sy) * min(half, dz - sz)
+            cx += (o & 1) * half
+            cy += ((o >> 1) & 1) * half
+            cz += ((o >> 2) & 1) * half
+            state = nxt[state, h]
+            path[lvl + 1, 0], path[lvl + 1, 1], path[lvl + 1, 2], path[lvl + 1, 3] = state, cx, cy, cz
+            path[lvl + 1, 4], path[lvl + 1, 5] = rank, whole
+        out[i] = rank
 
 
 @njit(cache=True, nogil=True)
@@ -359,14 +341,12 @@ def _cells(ranks, dx, dy, dz, bits, octant, nxt, lo, out):
 def ranks_of(rel: np.ndarray, dims) -> np.ndarray:
     """The curve ranks (int64) of cells given as (N, 3) coordinates inside a box anchored at 0."""
     dx, dy, dz = (int(d) for d in dims)
-    bits = bits_for((dx, dy, dz))
     # one array type whatever the count (a one-row slice would type as another layout, another kernel)
     rel = np.ascontiguousarray(rel, dtype=np.int64).reshape(-1, 3)
-    codes, back = np.unique(relative_morton(rel, bits), return_inverse=True)
-    ranks = np.empty(codes.shape[0], dtype=np.int64)
+    ranks = np.empty(rel.shape[0], dtype=np.int64)
     octant, nxt = state_tables()
-    _ranks(codes, dx, dy, dz, bits, octant, nxt, ranks)
-    return ranks[back.ravel()]
+    _ranks(rel, dx, dy, dz, bits_for((dx, dy, dz)), octant, digit_table(), nxt, ranks)
+    return ranks
 
 
 def cells_at(ranks: np.ndarray, dims, lo=(0, 0, 0), dtype=np.int64) -> np.ndarray:

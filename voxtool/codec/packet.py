@@ -229,10 +229,13 @@ def encode_packet(robot: str, seq: int, stamp_ns: int, scheme: str, codec: str, 
                     idx = np.flatnonzero(states != UNKNOWN)
                     vals, count, background = states[idx], cells, UNKNOWN
                 else:
+                    from voxtool.kernels.sort import sort_codes
+
                     rel = keys - lo
-                    idx = rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])
-                    order = np.argsort(idx, kind="stable")
-                    idx, vals, count, background = idx[order], states[order], int(keys.shape[0]), UNCHANGED
+                    # nested order by a radix sort of (index, state) packed (a third of argsort's time)
+                    packed = ((rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])) << 2) | states
+                    sort_codes(packed, np.empty_like(packed))
+                    idx, vals, count, background = packed >> 2, (packed & 3).astype(np.uint8), int(keys.shape[0]), UNCHANGED
                 stored = compress_cells(idx, vals, dims, background)
                 return _assemble(robot, seq, stamp_ns, scheme, codec, kind, resolution, map_origin, lo, dims, count,
                                  (cells + 3) // 4, stored)

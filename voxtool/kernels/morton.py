@@ -62,3 +62,13 @@ def key_codes(keys, out):
     """out[i]: the Morton code of keys[i] ((N, 3) uint16): keys.morton_encode in one pass."""
     for i in range(keys.shape[0]):
         out[i] = morton3(keys[i, 0], keys[i, 1], keys[i, 2])
+
+
+@njit(cache=True, nogil=True)
+def code_keys(codes, out):
+    """out[i]: the (3,) uint16 key of codes[i]: keys.morton_decode in one pass."""
+    for i in range(codes.shape[0]):
+        c = codes[i]
+        out[i, 0] = compact16(c)
+        out[i, 1] = compact16(c >> 1)
+        out[i, 2] = compact16(c >> 2)
