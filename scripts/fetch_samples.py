@@ -24,10 +24,16 @@ turtlebot3_world arena) driving: 538 LaserScans on /scan, frame base_scan, no /t
 public repository samialperen/oko_slam (commit 7136b806bfd13fafee9b7cf9995202ba063a0aca, MIT),
 ros_ws/bagfiles/simulation_data/turtlebot3_scan2.bag. A 2D scanner's log that nothing poses.
 
+e57: .fetched/e57/, the E57 files of the public repository davidcaron/pye57 (commit
+b8d20999f3037c580bf1fe1dcb239c50a8f764ad, MIT), its tests' inputs: pumpAVisualReferenceImage.e57 (one real
+terrestrial scan of a pump, 155,201 points with intensity and colour), translationWithoutRotation.e57
+(a scan with a pose of translation only) and testWithNormals.e57.
+
     python scripts/fetch_samples.py kitti GIT_DIR     # a clone or mirror of rancheng/mini_kitti_dataset
     python scripts/fetch_samples.py udacity GIT_DIR   # a clone or mirror of udacity/SFND_Lidar_Obstacle_Detection
     python scripts/fetch_samples.py nebula GIT_DIR    # a clone or mirror of tier4/nebula
     python scripts/fetch_samples.py tb3 GIT_DIR       # a clone or mirror of samialperen/oko_slam
+    python scripts/fetch_samples.py e57 GIT_DIR       # a clone or mirror of davidcaron/pye57
 """
 
 from __future__ import annotations
@@ -104,6 +110,18 @@ def tb3(git_dir: str) -> None:
     print(f"{out}: turtlebot3_scan2.bag")
 
 
+E57_COMMIT = "b8d20999f3037c580bf1fe1dcb239c50a8f764ad"
+E57_FILES = ("pumpAVisualReferenceImage.e57", "translationWithoutRotation.e57", "testWithNormals.e57")
+
+
+def e57(git_dir: str) -> None:
+    out = FETCHED / "e57"
+    out.mkdir(parents=True, exist_ok=True)
+    for name in E57_FILES:
+        (out / name).write_bytes(_git(git_dir)("show", f"{E57_COMMIT}:tests/test_data/{name}"))
+    print(f"{out}: {', '.join(E57_FILES)}")
+
+
 def kitti(git_dir: str) -> None:
     git = _git(git_dir)
 
@@ -123,4 +141,4 @@ def kitti(git_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3}[sys.argv[1]](sys.argv[2])
+    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3, "e57": e57}[sys.argv[1]](sys.argv[2])

@@ -67,6 +67,15 @@ def tb3_bag() -> Path:
     return path
 
 
+@pytest.fixture(scope="session")
+def e57_files() -> Path:
+    """pye57's test inputs: a real terrestrial scan and a posed scan (scripts/fetch_samples.py e57)."""
+    root = FETCHED / "e57"
+    if not (root / "pumpAVisualReferenceImage.e57").is_file():
+        pytest.skip("the E57 samples are absent (python scripts/fetch_samples.py e57 GIT_DIR)")
+    return root
+
+
 def cli(*args):
     """Run the voxtool command line in this process: (exit code, stdout, stderr)."""
     from click.testing import CliRunner

@@ -54,10 +54,11 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
 
         unposed = str(err)
         stream = open_source(path, replace(options, sensor_frame=True))
-    points, stamps = [], []
+    points, stamps, invalid = [], [], []
     for scan in stream.scans:
         points.append(scan.points_read)
         stamps.append(scan.stamp_ns)
+        invalid.append(scan.dropped_nonfinite)
     out = {"source": str(path), "kind": stream.kind, "scans": len(points), "points_per_scan": _spread(points),
            "time_span": _span(stamps),
            "pose_source": _file_pose_source(path, kind, options) if unposed is None else f"none: {unposed}"}
@@ -65,6 +66,12 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
         first = next(iter(sorted(path.glob("*.pcd"))), None) if path.is_dir() else path
         if first is not None:
             out["fields"] = _pcd_fields(first)
+    if kind == "e57":
+        from voxtool.sources.e57 import open_e57
+
+        e57 = open_e57(path)  # held while its header is read (pye57 frees the file with the reader)
+        out["fields"] = list(e57.get_header(0).point_fields)
+        out["points_invalid"] = int(sum(invalid))  # a direction only, or no return: dropped by build
     return out
 
 
@@ -92,6 +99,12 @@ def _file_pose_source(path: Path, kind: str, options: SourceOptions) -> str:
         return f"{found.name}, the camera's poses moved to the LiDAR by calib.txt's Tr (times from times.txt)"
     if kind == "ply":
         return "none: PLY scans need --poses (voxtool odometry estimates them)"
+    if kind == "e57":
+        from voxtool.sources.e57 import open_e57
+
+        e57 = open_e57(path)
+        posed = sum(e57.get_header(i).has_pose() for i in range(e57.scan_count))
+        return f"each scan's header pose ({posed} of {e57.scan_count} scans have one; the others sit at the origin)"
     return "none"
 
 

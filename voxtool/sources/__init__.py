@@ -427,6 +427,12 @@ def _open_graph(path: Path, options: SourceOptions) -> ScanStream:
     return ScanStream("graph", path, _selected(path, n, options), scans())
 
 
+def _open_e57(path: Path, options: SourceOptions) -> ScanStream:
+    from voxtool.sources.e57 import e57_stream
+
+    return e57_stream(path, options)
+
+
 SOURCES: dict[str, Callable[[Path, SourceOptions], ScanStream]] = {
     "pcd": _open_pcd,
     "ply": _open_ply,
@@ -435,6 +441,7 @@ SOURCES: dict[str, Callable[[Path, SourceOptions], ScanStream]] = {
     "bag": _open_bag,
     "db3": _open_bag,
     "kitti": _open_kitti,
+    "e57": _open_e57,
 }
 BAG_DIRECTORY = "metadata.yaml"  # what makes a directory a ROS 2 bag
 

@@ -1,0 +1,146 @@
+"""E57 scans (voxtool.sources.e57) against pye57, the library that reads and writes them: the
+real terrestrial scan of pye57's tests read point for point as pye57 reads it, and files pye57
+writes (several scans, each with its pose) mapped exactly as the same scans written as PCD with
+their poses."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import cli
+from scenes import write_pcd
+
+from voxtool.api import load_leaves
+from voxtool.keys import expand_leaves
+from voxtool.sources import SourceOptions, open_source
+
+pye57 = pytest.importorskip("pye57")
+
+
+def _voxels(path):
+    leaves, _, thr, _ = load_leaves(path)
+    occ = leaves.values > np.float32(thr)
+    return (np.sort(expand_leaves(leaves.codes[occ], leaves.depths[occ])),
+            np.sort(expand_leaves(leaves.codes[~occ], leaves.depths[~occ])))
+
+
+def _pump_points(e57_files):
+    reader = pye57.E57(str(e57_files / "pumpAVisualReferenceImage.e57"))  # held: its headers need it alive
+    data = reader.read_scan(0, transform=False)
+    return np.stack([data["cartesianX"], data["cartesianY"], data["cartesianZ"]], axis=1)
+
+
+def test_the_real_scan_reads_as_pye57_reads_it(e57_files):
+    path = e57_files / "pumpAVisualReferenceImage.e57"
+    reader = pye57.E57(str(path))
+    truth = reader.read_scan(0, transform=True)  # valid points only, in the file's frame
+    scans = list(open_source(path, SourceOptions()).scans)
+    assert len(scans) == 1
+    scan = scans[0]
+    header = reader.get_header(0)
+    assert scan.points_read == header.point_count == 155_201
+    xyz = np.stack([truth["cartesianX"], truth["cartesianY"], truth["cartesianZ"]], axis=1)
+    assert scan.points.shape[0] + scan.dropped_nonfinite == scan.points_read
+    assert np.array_equal(scan.points, xyz.astype(np.float32))
+
+
+def test_a_scan_with_a_translation_starts_its_rays_there(e57_files):
+    path = e57_files / "translationWithoutRotation.e57"
+    reader = pye57.E57(str(path))
+    truth = reader.read_scan(0, transform=True, ignore_missing_fields=True)
+    scan = next(open_source(path, SourceOptions()).scans)
+    assert np.array_equal(scan.origin, np.float32([4, 5, 6])) and np.array_equal(reader.get_header(0).translation, [4, 5, 6])
+    xyz = np.stack([truth[f"cartesian{a}"] for a in "XYZ"], axis=1).astype(np.float32)
+    # its first point is (0, 0, 0) in the scan's frame: the scanner's own position, no return
+    at_scanner = (xyz == scan.origin).all(axis=1)
+    assert at_scanner.sum() == scan.dropped_at_origin == 1
+    assert np.array_equal(scan.points, xyz[~at_scanner])
+
+
+POSES = [((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
+         ((np.cos(0.3), 0.0, 0.0, np.sin(0.3)), (3.5, -1.25, 0.5))]  # (w, x, y, z), translation in metres
+
+
+@pytest.fixture(scope="module")
+def two_scans(e57_files, tmp_path_factory):
+    """The real scan twice, at two poses: as an E57 that pye57 writes, and as two PCDs whose
+    VIEWPOINT is each pose (points float32 in both, so that only the reader differs)."""
+    tmp = tmp_path_factory.mktemp("e57")
+    local = _pump_points(e57_files).astype(np.float32)[::3]
+    path = tmp / "two.e57"
+    with pye57.E57(str(path), mode="w") as writer:
+        for q, t in POSES:
+            data = {f"cartesian{a}": local[:, k].astype(np.float64) for k, a in enumerate("XYZ")}
+            writer.write_scan_raw(data, rotation=np.array(q), translation=np.array(t))
+    pcd = tmp / "pcd"
+    pcd.mkdir()
+    for i, (q, t) in enumerate(POSES):
+        write_pcd(pcd / f"{i:03d}.pcd", local, viewpoint=(*t, *q))
+    return path, pcd, tmp
+
+
+def test_posed_scans_map_as_the_same_scans_in_pcd(two_scans):
+    path, pcd, tmp = two_scans
+    for src, out in ((path, tmp / "e57.vxm"), (pcd, tmp / "pcd.vxm")):
+        code, _, err = cli("build", src, "-o", out, "--resolution", "0.05", "--no-progress")
+        assert code == 0, err
+    occ, free = _voxels(tmp / "e57.vxm")
+    pcd_occ, pcd_free = _voxels(tmp / "pcd.vxm")
+    assert occ.size > 10_000 and free.size > occ.size
+    assert np.array_equal(occ, pcd_occ) and np.array_equal(free, pcd_free)
+    code, text, _ = cli("info", path, "--json")
+    info = json.loads(text)
+    assert code == 0 and info["scans"] == 2 and info["kind"] == "e57" and "2 of 2 scans" in info["pose_source"]
+
+
+def test_an_e57_encoded_and_merged_is_its_build(two_scans):
+    """encode reads it as build does: the merged log holds the built map's voxels."""
+    path, _, tmp = two_scans
+    built = tmp / "b.vxm"
+    assert cli("build", path, "-o", built, "--resolution", "0.1", "--no-progress")[0] == 0
+    code, text, err = cli("encode", path, "-o", tmp / "e.mcap", "--resolution", "0.1", "--json", "--no-progress")
+    assert code == 0, err
+    assert json.loads(text)["scans"] == 2
+    assert cli("merge", tmp / "e.mcap", "-o", tmp / "m.vxm", "--no-progress")[0] == 0
+    occ, free = _voxels(built)
+    m_occ, m_free = _voxels(tmp / "m.vxm")
+    assert occ.size > 1000 and np.array_equal(occ, m_occ) and np.array_equal(free, m_free)
+
+
+def test_invalid_points_are_dropped_and_counted(tmp_path):
+    xyz = np.random.default_rng(0).uniform(-5, 5, (40, 3))
+    invalid = np.zeros(40, np.int8)
+    invalid[[3, 7, 11]] = 2  # no return
+    invalid[20] = 1  # a direction only
+    path = tmp_path / "invalid.e57"
+    with pye57.E57(str(path), mode="w") as writer:
+        writer.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2],
+                               "cartesianInvalidState": invalid})
+    code, text, err = cli("build", path, "-o", tmp_path / "m.vxm", "--json", "--no-progress")
+    assert code == 0, err
+    report = json.loads(text)
+    assert report["points_dropped_nonfinite"] == 4 and report["points_dropped"] == 4
+    code, text, err = cli("build", path, "-o", tmp_path / "m2.vxm", "--no-progress")
+    assert code == 0 and "4 dropped" in text + err  # said in the summary as well
+
+
+def test_spherical_coordinates_as_pye57_converts_them():
+    from pye57.utils import convert_spherical_to_cartesian
+
+    from voxtool.sources.e57 import spherical_to_xyz
+
+    rng = np.random.default_rng(1)
+    rae = np.stack([rng.uniform(0.5, 80, 500), rng.uniform(-np.pi, np.pi, 500), rng.uniform(-1.5, 1.5, 500)], axis=1)
+    assert np.allclose(spherical_to_xyz(*rae.T), convert_spherical_to_cartesian(rae), rtol=0, atol=1e-9)
+
+
+def test_a_file_that_is_not_e57_fails_on_one_line_and_writes_nothing(tmp_path):
+    bad = tmp_path / "bad.e57"
+    bad.write_bytes(b"ASTM-E57" + bytes(2000))
+    out = tmp_path / "m.vxm"
+    code, _, err = cli("build", bad, "-o", out, "--no-progress")
+    assert code != 0 and not out.exists()
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and str(bad) in lines[0] and "E57" in lines[0]
