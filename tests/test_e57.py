@@ -1,7 +1,7 @@
 """E57 scans (voxtool.sources.e57) against pye57, the library that reads and writes them: the
-real terrestrial scan of pye57's tests read point for point as pye57 reads it, and files pye57
-writes (several scans, each with its pose) mapped exactly as the same scans written as PCD with
-their poses."""
+real terrestrial scan of pye57's tests read point for point as pye57 reads it, and a file pye57
+writes of the shipped sample's real scans, each with its pose, mapped exactly as the same scans
+in PCD with their VIEWPOINT poses."""
 
 from __future__ import annotations
 
@@ -24,12 +24,6 @@ def _voxels(path):
     occ = leaves.values > np.float32(thr)
     return (np.sort(expand_leaves(leaves.codes[occ], leaves.depths[occ])),
             np.sort(expand_leaves(leaves.codes[~occ], leaves.depths[~occ])))
-
-
-def _pump_points(e57_files):
-    reader = pye57.E57(str(e57_files / "pumpAVisualReferenceImage.e57"))  # held: its headers need it alive
-    data = reader.read_scan(0, transform=False)
-    return np.stack([data["cartesianX"], data["cartesianY"], data["cartesianZ"]], axis=1)
 
 
 def test_the_real_scan_reads_as_pye57_reads_it(e57_files):
@@ -59,32 +53,34 @@ def test_a_scan_with_a_translation_starts_its_rays_there(e57_files):
     assert np.array_equal(scan.points, xyz[~at_scanner])
 
 
-POSES = [((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
-         ((np.cos(0.3), 0.0, 0.0, np.sin(0.3)), (3.5, -1.25, 0.5))]  # (w, x, y, z), translation in metres
-
-
 @pytest.fixture(scope="module")
-def two_scans(e57_files, tmp_path_factory):
-    """The real scan twice, at two poses: as an E57 that pye57 writes, and as two PCDs whose
-    VIEWPOINT is each pose (points float32 in both, so that only the reader differs)."""
+def two_scans(tmp_path_factory):
+    """The shipped sample's first two real scans (norlab, each with its VIEWPOINT pose) as an
+    E57 that pye57 writes, each scan with its pose in its header, beside the PCDs themselves."""
+    from pathlib import Path
+
+    import voxtool
+    from voxtool.sources.pcd import read_pcd
+
     tmp = tmp_path_factory.mktemp("e57")
-    local = _pump_points(e57_files).astype(np.float32)[::3]
-    path = tmp / "two.e57"
-    with pye57.E57(str(path), mode="w") as writer:
-        for q, t in POSES:
-            data = {f"cartesian{a}": local[:, k].astype(np.float64) for k, a in enumerate("XYZ")}
-            writer.write_scan_raw(data, rotation=np.array(q), translation=np.array(t))
     pcd = tmp / "pcd"
     pcd.mkdir()
-    for i, (q, t) in enumerate(POSES):
-        write_pcd(pcd / f"{i:03d}.pcd", local, viewpoint=(*t, *q))
+    path = tmp / "two.e57"
+    with pye57.E57(str(path), mode="w") as writer:
+        for f in sorted((Path(voxtool.__file__).parent / "data" / "sample").glob("*.pcd"))[:2]:
+            (pcd / f.name).write_bytes(f.read_bytes())
+            cloud = read_pcd(f)
+            xyz = np.asarray(cloud.xyz, np.float64)  # float32 values: the two files hold the same numbers
+            vp = cloud.viewpoint
+            writer.write_scan_raw({f"cartesian{a}": xyz[:, k].copy() for k, a in enumerate("XYZ")},
+                                  rotation=np.array(vp[3:7], np.float64), translation=np.array(vp[:3], np.float64))
     return path, pcd, tmp
 
 
 def test_posed_scans_map_as_the_same_scans_in_pcd(two_scans):
     path, pcd, tmp = two_scans
     for src, out in ((path, tmp / "e57.vxm"), (pcd, tmp / "pcd.vxm")):
-        code, _, err = cli("build", src, "-o", out, "--resolution", "0.05", "--no-progress")
+        code, _, err = cli("build", src, "-o", out, "--resolution", "0.1", "--no-progress")
         assert code == 0, err
     occ, free = _voxels(tmp / "e57.vxm")
     pcd_occ, pcd_free = _voxels(tmp / "pcd.vxm")
