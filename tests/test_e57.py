@@ -10,7 +10,6 @@ import json
 import numpy as np
 import pytest
 from conftest import cli
-from scenes import write_pcd
 
 from voxtool.api import load_leaves
 from voxtool.keys import expand_leaves
