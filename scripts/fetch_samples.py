@@ -17,7 +17,9 @@ nebula: .fetched/nebula/<sensor>/, the ROS 2 bags (sqlite3, with metadata.yaml) 
 tier4/nebula (commit 606ac41f1f136333915f0114736f2f828e9d2789, Apache-2.0), its decoders' test inputs:
 real Velodyne VLP-16/VLP-32/VLS-128 and Hesai Pandar 40P/64/QT64/QT128/XT16/XT32/XT32M logs of four
 raw packet messages each (velodyne_msgs/VelodyneScan, pandar_msgs/PandarScan: no points until a
-driver decodes them), and two Continental radar logs. 3D LiDAR logs as drivers record them.
+driver decodes them), and two Continental radar logs. 3D LiDAR logs as drivers record them. Beside
+them, in ground_truth/<sensor>/<log time>.pcd, nebula's own decoder's points of one message of each
+Velodyne bag: a decoder other than the one voxtool uses.
 
 tb3: .fetched/tb3/turtlebot3_scan2.bag, a ROS 1 bag of a simulated TurtleBot3 (Gazebo, the
 turtlebot3_world arena) driving: 538 LaserScans on /scan, frame base_scan, no /tf. Source: the
@@ -95,8 +97,14 @@ def nebula(git_dir: str) -> None:
         for name, data in files.items():
             (folder / name).write_bytes(data)
         laid += 1
+    # nebula's own decoder's output for one message of each Velodyne bag (named by its log time)
+    truths = [n for n in names if "/nebula_velodyne/" in n and "/decoder_ground_truth/" in n and n.endswith(".pcd")]
+    for name in truths:
+        sensor = name.split("/decoder_ground_truth/")[1].split("/")[0]
+        (out / "ground_truth" / sensor).mkdir(parents=True, exist_ok=True)
+        (out / "ground_truth" / sensor / name.rsplit("/", 1)[1]).write_bytes(git("show", f"{NEBULA_COMMIT}:{name}"))
     (out / "PROVENANCE.md").write_text(__doc__)
-    print(f"{out}: {laid} bags")
+    print(f"{out}: {laid} bags, {len(truths)} decoded clouds")
 
 
 TB3_COMMIT = "7136b806bfd13fafee9b7cf9995202ba063a0aca"

@@ -76,6 +76,19 @@ def e57_files() -> Path:
     return root
 
 
+def map_voxels(path):
+    """(occupied, free) finest-level Morton codes of a map file, each sorted."""
+    import numpy as np
+
+    from voxtool.api import load_leaves
+    from voxtool.keys import expand_leaves
+
+    leaves, _, thr, _ = load_leaves(path)
+    occ = leaves.values > np.float32(thr)
+    return (np.sort(expand_leaves(leaves.codes[occ], leaves.depths[occ])),
+            np.sort(expand_leaves(leaves.codes[~occ], leaves.depths[~occ])))
+
+
 def cli(*args):
     """Run the voxtool command line in this process: (exit code, stdout, stderr)."""
     from click.testing import CliRunner

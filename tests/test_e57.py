@@ -9,20 +9,11 @@ import json
 
 import numpy as np
 import pytest
-from conftest import cli
+from conftest import cli, map_voxels
 
-from voxtool.api import load_leaves
-from voxtool.keys import expand_leaves
 from voxtool.sources import SourceOptions, open_source
 
 pye57 = pytest.importorskip("pye57")
-
-
-def _voxels(path):
-    leaves, _, thr, _ = load_leaves(path)
-    occ = leaves.values > np.float32(thr)
-    return (np.sort(expand_leaves(leaves.codes[occ], leaves.depths[occ])),
-            np.sort(expand_leaves(leaves.codes[~occ], leaves.depths[~occ])))
 
 
 def test_the_real_scan_reads_as_pye57_reads_it(e57_files):
@@ -81,8 +72,8 @@ def test_posed_scans_map_as_the_same_scans_in_pcd(two_scans):
     for src, out in ((path, tmp / "e57.vxm"), (pcd, tmp / "pcd.vxm")):
         code, _, err = cli("build", src, "-o", out, "--resolution", "0.1", "--no-progress")
         assert code == 0, err
-    occ, free = _voxels(tmp / "e57.vxm")
-    pcd_occ, pcd_free = _voxels(tmp / "pcd.vxm")
+    occ, free = map_voxels(tmp / "e57.vxm")
+    pcd_occ, pcd_free = map_voxels(tmp / "pcd.vxm")
     assert occ.size > 10_000 and free.size > occ.size
     assert np.array_equal(occ, pcd_occ) and np.array_equal(free, pcd_free)
     code, text, _ = cli("info", path, "--json")
@@ -99,8 +90,8 @@ def test_an_e57_encoded_and_merged_is_its_build(two_scans):
     assert code == 0, err
     assert json.loads(text)["scans"] == 2
     assert cli("merge", tmp / "e.mcap", "-o", tmp / "m.vxm", "--no-progress")[0] == 0
-    occ, free = _voxels(built)
-    m_occ, m_free = _voxels(tmp / "m.vxm")
+    occ, free = map_voxels(built)
+    m_occ, m_free = map_voxels(tmp / "m.vxm")
     assert occ.size > 1000 and np.array_equal(occ, m_occ) and np.array_equal(free, m_free)
 
 

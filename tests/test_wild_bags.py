@@ -468,12 +468,17 @@ def _declared_topics(bag) -> dict[str, tuple[str, int]]:
 
 
 def test_logs_of_lidar_packets_are_one_line_that_says_to_decode_them(tmp_path, nebula_bags):
-    """Real ROS 2 bags recorded at the driver (Velodyne and Hesai packets, two radars; two of
-    them with metadata fields left blank): `info` lists the topics their metadata declares, and
-    `build` says in one line, exit 3, which topic holds packets and what turns them into points."""
+    """Real ROS 2 bags recorded at the driver (Hesai packets, two radars; metadata fields left
+    blank in some): `info` lists the topics their metadata declares, and `build` says in one line,
+    exit 3, which topic holds packets and what turns them into points. (Velodyne's packets are
+    decoded: test_velodyne.)"""
+    checked = 0
     for bag in nebula_bags:
         declared = _declared_topics(bag)
         assert declared, bag
+        if any(msgtype.endswith("/VelodyneScan") for msgtype, _ in declared.values()):
+            continue
+        checked += 1
         code, text, err = cli("info", bag, "--json")
         assert code == 0, (bag, err)
         info = json.loads(text)
@@ -485,6 +490,7 @@ def test_logs_of_lidar_packets_are_one_line_that_says_to_decode_them(tmp_path, n
         topic, (msgtype, _) = next(iter(declared.items()))
         assert f"{topic} ({msgtype}) holds the sensor driver's raw packets" in line, line
         assert "turn them into PointCloud2 with that driver" in line
+    assert checked >= 8
 
 
 def _gmapping_share(folder, backend) -> tuple[int, float]:

@@ -108,9 +108,17 @@ def _file_pose_source(path: Path, kind: str, options: SourceOptions) -> str:
     return "none"
 
 
-def _scan_counts(msgtype: str, msg) -> int:
-    from voxtool.sources.ros_msgs import LASER
+def _scan_counts(msgtype: str, msg, found: dict) -> int:
+    """Points (or beams) of a scan message; a VelodyneScan is decoded, and what its decoder
+    found (model, return mode) is put in `found`."""
+    from voxtool.sources.ros_msgs import LASER, VELODYNE
 
+    if msgtype == VELODYNE:
+        from voxtool.sources.velodyne import decode_revolution
+
+        points, what = decode_revolution("info", msg)
+        found.update(what)
+        return int(points.shape[0])
     return len(msg.ranges) if msgtype == LASER else int(msg.width) * int(msg.height)
 
 
@@ -135,13 +143,17 @@ def _log_figures(kind: str, path: Path, topics: list[dict], topic: str, msgtype:
     `poses` its tf.SensorPoses as read (`problem`: why they could not be)."""
     from voxtool.sources.tf import header_stamp
 
-    points, stamps, frame = [], [], None
+    points, stamps, frame, found = [], [], None, {}
     for msg in messages:
-        points.append(_scan_counts(msgtype, msg))
+        points.append(_scan_counts(msgtype, msg, found))
         stamps.append(header_stamp(msg.header))
         frame = frame or msg.header.frame_id
     edges = [] if poses is None else sorted(poses.edges.items())
+    if found:  # driver packets: the sensor as its decoder found it, and its revolutions per second
+        span = (max(stamps) - min(stamps)) / 1e9 if len(stamps) > 1 else 0.0
+        found["rate_hz"] = round((len(stamps) - 1) / span, 2) if span > 0 else None
     return {"source": str(path), "kind": kind, "topics": topics, "scan_topic": topic, "scan_type": msgtype,
+            **({"lidar": found} if found else {}),
             "scans": len(points), "points_per_scan": _spread(points), "time_span": _span(stamps), "scan_frame": frame,
             "tf": [{"parent": p, "child": c, "static": e.static, "transforms": len(e.stamps)} for (p, c), e in edges],
             "pose_source": {"posed": False, "why": problem} if problem else _pose_source(poses, frame, stamps)}

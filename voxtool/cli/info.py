@@ -59,6 +59,12 @@ def _rows(f: dict) -> list[tuple[str, str]]:
         rows.append(("points per scan", f"min {pps['min']:,}, median {pps['median']:,.0f}, max {pps['max']:,}"))
     if f.get("fields"):
         rows.append(("fields", " ".join(f["fields"])))
+    if f.get("points_invalid"):
+        rows.append(("invalid points", f"{f['points_invalid']:,} (a direction only, or no return: build drops them)"))
+    if f.get("lidar"):
+        lidar = f["lidar"]
+        rate = f", {lidar['rate_hz']:g} revolutions a second" if lidar.get("rate_hz") else ""
+        rows.append(("sensor", f"{lidar['model']}, return mode {lidar['return_mode']}{rate} (decoded from its packets)"))
     for e in f.get("tf", []):
         how = "static" if e["static"] else f"{e['transforms']:,} transforms"
         rows.append(("tf", f"{e['parent']} -> {e['child']} ({how})"))

@@ -13,7 +13,8 @@ from voxtool.sources.pcd import MAX_POINTS
 
 CLOUD = "sensor_msgs/msg/PointCloud2"
 LASER = "sensor_msgs/msg/LaserScan"
-SCAN_TYPES = (CLOUD, LASER)
+VELODYNE = "velodyne_msgs/msg/VelodyneScan"  # a revolution of driver packets (sources.velodyne)
+SCAN_TYPES = (CLOUD, LASER, VELODYNE)
 _PF_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
 
@@ -86,6 +87,10 @@ def decode_scan(where: str, msgtype: str, msg) -> tuple[np.ndarray, np.ndarray |
     LaserScan's, decode_laserscan) and the range at which they are cut."""
     if msgtype == LASER:
         return decode_laserscan(where, msg)
+    if msgtype == VELODYNE:
+        from voxtool.sources.velodyne import decode_revolution
+
+        return decode_revolution(where, msg)[0], None, -1.0
     return decode_pointcloud2(where, msg), None, -1.0
 
 
@@ -95,7 +100,8 @@ PACKET_MARKERS = ("VelodyneScan", "PandarScan", "Packet", "rslidarScan", "Custom
 
 
 def no_scan_topic(where: str, topics: dict[str, str]) -> str:
-    """The one line for a log with no PointCloud2 or LaserScan topic: what it holds instead."""
+    """The one line for a log with no scan topic (PointCloud2, LaserScan, VelodyneScan): what it
+    holds instead."""
     packets = sorted(t for t, s in topics.items() if any(m in s.rsplit("/", 1)[-1] for m in PACKET_MARKERS))
     if packets:
         named = ", ".join(f"{t} ({topics[t]})" for t in packets[:3])
@@ -109,18 +115,24 @@ def no_scan_topic(where: str, topics: dict[str, str]) -> str:
 
 def scan_topic(where: str, topics: dict[str, str], topic: str | None) -> str:
     """The scan topic to read (`topics`: every topic's message type): the one given, which must
-    be a PointCloud2 or LaserScan topic, or else the log's only one."""
+    be a PointCloud2, LaserScan or VelodyneScan topic, or else the log's only one (a driver's
+    point cloud before its packets, where a log holds both)."""
     scans = sorted(t for t, s in topics.items() if s in SCAN_TYPES)
     if topic is None:
         if not scans:
             raise SourceError(no_scan_topic(where, topics))
-        if len(scans) != 1:
-            raise SourceError(f"{where}: found {len(scans)} PointCloud2/LaserScan topics ({', '.join(scans) or 'none'}); "
-                              "choose one with --topic")
-        return scans[0]
-    if topics.get(topic) not in SCAN_TYPES:
-        raise SourceError(f"{where}: topic '{topic}' is not a PointCloud2 or LaserScan topic "
+        clouds = [t for t in scans if topics[t] != VELODYNE]
+        if len(scans) != 1 and len(clouds) != 1:
+            raise SourceError(f"{where}: found {len(scans)} PointCloud2/LaserScan/VelodyneScan topics "
+                              f"({', '.join(scans) or 'none'}); choose one with --topic")
+        topic = scans[0] if len(scans) == 1 else clouds[0]
+    elif topics.get(topic) not in SCAN_TYPES:
+        raise SourceError(f"{where}: topic '{topic}' is not a PointCloud2, LaserScan or VelodyneScan topic "
                           f"(those topics: {', '.join(scans) or 'none'})")
+    if topics[topic] == VELODYNE:
+        from voxtool.sources.velodyne import decoder_module
+
+        decoder_module(f"{where}: topic '{topic}'")  # the extra's one line before any reading
     return topic
 
 

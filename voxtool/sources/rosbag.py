@@ -42,11 +42,33 @@ def ros2_blanks_filled(root: Path):
     storage = "mcap" if any(root.glob("*.mcap")) else "sqlite3"
     folder = tempfile.TemporaryDirectory(prefix="voxtool-bag-")
     for f in root.iterdir():
-        if f.name != "metadata.yaml":
-            (Path(folder.name) / f.name).symlink_to(f.resolve())
+        if f.name == "metadata.yaml":
+            continue
+        if f.suffix == ".db3" and _blank_db_formats(f):
+            # the database's topics are blank too: rosbags pairs them with metadata.yaml's by format,
+            # and would read no message of them. A copy with the blanks filled (the file is left as it is)
+            import shutil
+            import sqlite3
+
+            shutil.copyfile(f, Path(folder.name) / f.name)
+            with sqlite3.connect(Path(folder.name) / f.name) as db:
+                db.execute("UPDATE topics SET serialization_format = 'cdr' WHERE serialization_format = ''")
+            continue
+        (Path(folder.name) / f.name).symlink_to(f.resolve())
     text = BLANK_FORMAT.sub(r"\g<1>cdr", BLANK_STORAGE.sub(rf"\g<1>{storage}", text))
     (Path(folder.name) / "metadata.yaml").write_text(text)
     return folder
+
+
+def _blank_db_formats(db3: Path) -> bool:
+    """Whether a rosbag2 sqlite file's topics table leaves a serialization format blank."""
+    import sqlite3
+
+    try:
+        with sqlite3.connect(f"file:{db3}?mode=ro", uri=True) as db:
+            return bool(db.execute("SELECT count(*) FROM topics WHERE serialization_format = ''").fetchone()[0])
+    except sqlite3.Error:
+        return False  # not a database rosbags can read either: its own error says so
 
 
 def _problem(err: Exception) -> str:
@@ -123,6 +145,10 @@ def open_bag(path: Path, recover: bool):
             if f.read(len(OLD_MAGIC)) == OLD_MAGIC:
                 return _LinearBag(LinearBag(root))  # raises the one line that says what to do
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    if not ros1:  # sqlite bags name their types without defining them: the driver packets voxtool decodes
+        from voxtool.sources.velodyne import register_ros2_types
+
+        register_ros2_types(store)
     patched = None if ros1 else ros2_blanks_filled(root)
     try:
         reader = AnyReader([Path(patched.name) if patched else root], default_typestore=store)

@@ -1,0 +1,96 @@
+"""Velodyne driver packets (velodyne_msgs/VelodyneScan) in real ROS 2 bags, decoded through
+velodyne-decoder (voxtool.sources.velodyne), against a second decoder: TIER IV nebula's own
+output for one message of each bag (VLP-16 dual return, VLP-32C, VLS-128). The maps they make
+are those of the same points written as PCD."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+
+import numpy as np
+import pytest
+from conftest import cli, map_voxels
+from scenes import write_pcd
+
+from voxtool.sources import SourceOptions, open_source
+from voxtool.sources.pcd import read_pcd
+
+pytest.importorskip("velodyne_decoder")
+
+FRAMES = {"vlp16": "velodyne", "vlp32": "velodyne_front", "vls128": "velodyne_top"}
+
+
+def _bag(nebula_bags, sensor):
+    root = nebula_bags[0].parent
+    if not (root / sensor / "metadata.yaml").is_file():
+        pytest.skip(f"the nebula {sensor} bag is absent")
+    return root / sensor
+
+
+@pytest.mark.parametrize("sensor", sorted(FRAMES))
+def test_revolutions_match_nebulas_decoder(nebula_bags, sensor):
+    import open3d as o3d
+
+    bag = _bag(nebula_bags, sensor)
+    truth_file = next((bag.parent / "ground_truth" / sensor).glob("*.pcd"), None)
+    if truth_file is None:
+        pytest.skip("nebula's decoded clouds are absent (python scripts/fetch_samples.py nebula GIT_DIR)")
+    # the message nebula decoded, by its log time (the file's name), read from the bag's database itself
+    times = [t for (t,) in sqlite3.connect(next(bag.glob("*.db3"))).execute("SELECT timestamp FROM messages ORDER BY timestamp")]
+    scans = list(open_source(bag, SourceOptions(world_frame=FRAMES[sensor])).scans)
+    assert len(scans) == len(times)
+    ours = scans[times.index(int(truth_file.stem))].points.astype(np.float64)
+    theirs = read_pcd(truth_file).xyz.astype(np.float64)
+    assert abs(len(ours) - len(theirs)) <= 0.01 * len(theirs)
+    a, b = (o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)) for p in (ours, theirs))
+    for d in (np.asarray(a.compute_point_cloud_distance(b)), np.asarray(b.compute_point_cloud_distance(a))):
+        # the two decoders' calibrations and azimuth interpolation differ by millimetres to centimetres
+        assert np.median(d) < 0.03 and np.percentile(d, 95) < 0.15
+
+
+def test_info_names_the_sensor_its_return_mode_and_rate(nebula_bags):
+    code, text, err = cli("info", _bag(nebula_bags, "vlp16"), "--json")
+    assert code == 0, err
+    info = json.loads(text)
+    assert info["scan_type"] == "velodyne_msgs/msg/VelodyneScan" and info["scans"] == 4
+    assert info["lidar"]["model"] == "VLP16" and info["lidar"]["return_mode"] == "BOTH"
+    assert 9.0 < info["lidar"]["rate_hz"] < 11.0  # a VLP-16 at 600 rpm
+    assert info["points_per_scan"]["min"] > 14_000
+
+
+def test_a_packet_bag_maps_as_its_points_in_pcd(nebula_bags, tmp_path):
+    """build, encode and merge of the VLS-128 bag (its topics' serialization left blank, as some
+    rosbag2 releases wrote them) hold the map of the same revolutions written as PCD scans."""
+    bag = _bag(nebula_bags, "vls128")
+    scans = list(open_source(bag, SourceOptions(world_frame=FRAMES["vls128"])).scans)
+    assert len(scans) == 4 and min(s.points.shape[0] for s in scans) > 100_000
+    pcd = tmp_path / "pcd"
+    pcd.mkdir()
+    for s in scans:
+        write_pcd(pcd / f"{s.index:03d}.pcd", s.points)
+    common = ["--resolution", "0.2", "--no-progress"]
+    assert cli("build", bag, "-o", tmp_path / "bag.vxm", "--world-frame", FRAMES["vls128"], *common)[0] == 0
+    assert cli("build", pcd, "-o", tmp_path / "pcd.vxm", *common)[0] == 0
+    code, text, err = cli("encode", bag, "-o", tmp_path / "e.mcap", "--world-frame", FRAMES["vls128"], "--json", *common)
+    assert code == 0, err
+    assert cli("merge", tmp_path / "e.mcap", "-o", tmp_path / "m.vxm", "--no-progress")[0] == 0
+    built = map_voxels(tmp_path / "bag.vxm")
+    assert built[0].size > 10_000
+    for other in ("pcd.vxm", "m.vxm"):
+        occ, free = map_voxels(tmp_path / other)
+        assert np.array_equal(occ, built[0]) and np.array_equal(free, built[1])
+
+
+def test_odometry_poses_a_packet_bag(nebula_bags, tmp_path):
+    bag = _bag(nebula_bags, "vlp32")
+    code, _, err = cli("odometry", bag, "-o", tmp_path / "poses.txt", "--no-progress")
+    assert code == 0, err
+    rows = [line.split() for line in (tmp_path / "poses.txt").read_text().splitlines() if not line.startswith("#")]
+    # a pose per revolution, at the revolution's own stamp
+    stamps = [s.stamp_ns for s in open_source(bag, SourceOptions(world_frame=FRAMES["vlp32"])).scans]
+    assert [round(float(r[0]) * 1e9) for r in rows] == pytest.approx(stamps, abs=1000)
+    code, text, err = cli("build", bag, "--poses", tmp_path / "poses.txt", "-o", tmp_path / "m.vxm", "--json",
+                          "--no-progress")
+    assert code == 0, err
+    assert json.loads(text)["scans"] == 5
