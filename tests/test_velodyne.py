@@ -94,3 +94,59 @@ def test_odometry_poses_a_packet_bag(nebula_bags, tmp_path):
                           "--no-progress")
     assert code == 0, err
     assert json.loads(text)["scans"] == 5
+
+
+def _capture(bag, path, fmt):
+    """The bag's Velodyne packets as a capture written by dpkt (Ethernet, IP, UDP to port 2368),
+    each packet at its own stamp."""
+    import dpkt
+
+    from voxtool.sources.rosbag import open_bag
+
+    opened = open_bag(bag, False)
+    msgs = [opened.deserialize(raw, t) for _, t, raw in opened.messages(list(opened.topics))]
+    with open(path, "wb") as f:
+        writer = dpkt.pcap.Writer(f) if fmt == "pcap" else dpkt.pcapng.Writer(f)
+        for m in msgs:
+            for p in m.packets:
+                udp = dpkt.udp.UDP(sport=2368, dport=2368, data=p.data.tobytes())
+                udp.ulen = len(udp)
+                ip = dpkt.ip.IP(src=bytes([192, 168, 1, 201]), dst=bytes([255] * 4), p=dpkt.ip.IP_PROTO_UDP, data=udp)
+                ip.len = len(ip)
+                frame = dpkt.ethernet.Ethernet(src=bytes(6), dst=b"\xff" * 6, type=dpkt.ethernet.ETH_TYPE_IP, data=ip)
+                writer.writepkt(bytes(frame), ts=p.stamp.sec + p.stamp.nanosec * 1e-9)
+    return path
+
+
+@pytest.mark.parametrize("fmt", ["pcap", "pcapng"])
+def test_a_capture_holds_the_points_of_its_packets(nebula_bags, tmp_path, fmt):
+    """A capture of the VLP-16 bag's packets is cut into revolutions where the azimuth wraps,
+    not where the messages were, but holds exactly their points; it needs poses, which odometry
+    gives, and info names the sensor."""
+    bag = _bag(nebula_bags, "vlp16")
+    capture = _capture(bag, tmp_path / f"v.{fmt}", fmt)
+    from_bag = np.concatenate([s.points for s in open_source(bag, SourceOptions(world_frame="velodyne")).scans])
+    code, _, err = cli("build", capture, "-o", tmp_path / "m.vxm", "--no-progress")
+    assert code != 0 and "holds no poses" in err and not (tmp_path / "m.vxm").exists()
+    assert cli("odometry", capture, "-o", tmp_path / "poses.txt", "--no-progress")[0] == 0
+    scans = list(open_source(capture, SourceOptions(poses=str(tmp_path / "poses.txt"))).scans)
+    assert len(scans) == 4
+    ours = np.concatenate([s.points for s in scans])
+    # the first pose is the identity: compare the first revolution's points, and all points' count
+    assert ours.shape == from_bag.shape
+    key = np.dtype("f4,f4,f4")
+    first = scans[0].points
+    assert np.isin(first.view(key).ravel(), from_bag.view(key).ravel()).all()
+    code, text, _ = cli("info", capture, "--json")
+    info = json.loads(text)
+    assert code == 0 and info["scans"] == 4 and info["lidar"]["model"] == "VLP16"
+    assert sorted(map(tuple, np.concatenate([s.points for s in open_source(
+        capture, SourceOptions(sensor_frame=True)).scans]).tolist())) == sorted(map(tuple, from_bag.tolist()))
+
+
+def test_a_file_that_is_no_capture_fails_on_one_line(tmp_path):
+    bad = tmp_path / "x.pcap"
+    bad.write_bytes(b"not a capture at all" * 10)
+    code, _, err = cli("info", bad)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code != 0 and len(lines) == 1 and str(bad) in lines[0] and "pcap" in lines[0]

@@ -47,7 +47,7 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
     try:
         stream = open_source(path, options)
     except SourceError as err:
-        if kind != "kitti" or options.poses is not None:
+        if kind not in ("kitti", "pcap", "pcapng") or options.poses is not None:
             raise
         # a sequence build cannot pose (no Tr, no poses.txt): its scans listed all the same, and why
         from dataclasses import replace
@@ -66,6 +66,9 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
         first = next(iter(sorted(path.glob("*.pcd"))), None) if path.is_dir() else path
         if first is not None:
             out["fields"] = _pcd_fields(first)
+    if kind in ("pcap", "pcapng"):
+        span = (max(stamps) - min(stamps)) / 1e9 if len(stamps) > 1 else 0.0
+        out["lidar"] = {**_capture_sensor(path), "rate_hz": round((len(stamps) - 1) / span, 2) if span > 0 else None}
     if kind == "e57":
         from voxtool.sources.e57 import open_e57
 
@@ -73,6 +76,13 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
         out["fields"] = list(e57.get_header(0).point_fields)
         out["points_invalid"] = int(sum(invalid))  # a direction only, or no return: dropped by build
     return out
+
+
+def _capture_sensor(path: Path) -> dict:
+    """The model and return mode of a Velodyne capture, as the decoder finds them in its packets."""
+    from voxtool.sources.velodyne import capture_sensor
+
+    return capture_sensor(path)
 
 
 def _pcd_fields(path: Path) -> list[str]:

@@ -433,6 +433,12 @@ def _open_e57(path: Path, options: SourceOptions) -> ScanStream:
     return e57_stream(path, options)
 
 
+def _open_pcap(path: Path, options: SourceOptions) -> ScanStream:
+    from voxtool.sources.velodyne import pcap_stream
+
+    return pcap_stream(path, options)
+
+
 SOURCES: dict[str, Callable[[Path, SourceOptions], ScanStream]] = {
     "pcd": _open_pcd,
     "ply": _open_ply,
@@ -442,6 +448,8 @@ SOURCES: dict[str, Callable[[Path, SourceOptions], ScanStream]] = {
     "db3": _open_bag,
     "kitti": _open_kitti,
     "e57": _open_e57,
+    "pcap": _open_pcap,
+    "pcapng": _open_pcap,
 }
 BAG_DIRECTORY = "metadata.yaml"  # what makes a directory a ROS 2 bag
 

@@ -1,13 +1,17 @@
 """Velodyne driver packets as scans, through velodyne-decoder (BSD-3), an optional extra.
 
 A log recorded before the driver's point cloud node holds `velodyne_msgs/VelodyneScan`
-messages: one revolution each, as the sensor's 1206-byte UDP packets. velodyne-decoder turns a
+messages: one revolution each, as the sensor's 1206-byte UDP packets; a capture (.pcap,
+.pcapng, read with dpkt) holds the packets themselves, cut into revolutions here as the
+driver cuts them. velodyne-decoder turns a
 message's packets into the revolution's points in the sensor frame (the model is found from
 the packets; both returns of a dual-return sensor are kept: each is a surface). The messages
 are read by what reads the log (rosbags, mcap), never by ROS.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -67,3 +71,110 @@ def decode_revolution(where: str, msg) -> tuple[np.ndarray, dict]:
         raise SourceError(f"{where}: its Velodyne packets cannot be decoded ({err})") from None
     found = {"model": str(decoder.model_id).rsplit(".", 1)[-1], "return_mode": str(decoder.return_mode).rsplit(".", 1)[-1]}
     return np.ascontiguousarray(cloud[:, :3], dtype=np.float32), found
+
+
+def _udp_payload(buf: bytes, datalink: int):
+    """The UDP payload of a captured frame (Ethernet or Linux cooked capture), None otherwise."""
+    import dpkt
+
+    try:
+        frame = dpkt.sll.SLL(buf) if datalink == dpkt.pcap.DLT_LINUX_SLL else dpkt.ethernet.Ethernet(buf)
+    except (dpkt.UnpackError, dpkt.NeedData):
+        return None
+    ip = frame.data
+    udp = getattr(ip, "data", None)
+    return udp.data if isinstance(udp, dpkt.udp.UDP) else None
+
+
+def pcap_revolutions(path: Path):
+    """(capture stamp in ns, (N, 3) float32 sensor-frame points, bytes) of each revolution of a
+    Velodyne capture (.pcap or .pcapng: the sensor's UDP data packets; others are passed over),
+    cut where the azimuth wraps, as the driver cuts them."""
+    import struct
+
+    import dpkt
+
+    vd = decoder_module(str(path))
+    with open(path, "rb") as f:
+        try:
+            reader = dpkt.pcap.UniversalReader(f)
+        except (ValueError, dpkt.Error) as err:
+            raise SourceError(f"{path}: not a pcap or pcapng capture ({err})") from None
+        datalink = reader.datalink()
+        decoder = vd.StreamDecoder(vd.Config())
+        size = 0
+
+        def revolution(result):
+            nonlocal size
+            stamp, cloud = result
+            out = int(round(stamp.host * 1e9)), np.ascontiguousarray(cloud[:, :3], dtype=np.float32), size
+            size = 0
+            return out
+
+        try:
+            for stamp, buf in reader:
+                payload = _udp_payload(buf, datalink)
+                if payload is None or len(payload) != vd.PACKET_SIZE:
+                    continue  # position (GPS) packets, other traffic
+                size += len(payload)
+                result = decoder.decode(stamp, payload)
+                if result is not None:
+                    yield revolution(result)
+        except (ValueError, dpkt.Error, struct.error) as err:
+            raise SourceError(f"{path}: the capture cannot be read on ({err})") from None
+        result = decoder.finish()
+        if result is not None:
+            yield revolution(result)
+
+
+def capture_sensor(path: Path, packets: int = 400) -> dict:
+    """{model, return_mode} of a capture, decoded from its first data packets ({} without any)."""
+    import dpkt
+
+    vd = decoder_module(str(path))
+    found = vd.PacketVector()
+    with open(path, "rb") as f:
+        reader = dpkt.pcap.UniversalReader(f)
+        datalink = reader.datalink()
+        for stamp, buf in reader:
+            payload = _udp_payload(buf, datalink)
+            if payload is not None and len(payload) == vd.PACKET_SIZE:
+                found.append(vd.VelodynePacket(stamp, payload))
+                if len(found) >= packets:
+                    break
+    if not len(found):
+        return {}
+    decoder = vd.ScanDecoder(vd.Config())
+    decoder.decode(found)
+    return {"model": str(decoder.model_id).rsplit(".", 1)[-1], "return_mode": str(decoder.return_mode).rsplit(".", 1)[-1]}
+
+
+def pcap_stream(path: Path, options):
+    """A Velodyne capture as a ScanStream: one scan per revolution, posed by --poses (a capture
+    holds no poses; `voxtool odometry` estimates them)."""
+    from voxtool.geometry import Pose
+    from voxtool.sources import BadScans, ScanStream, _pose_rows, make_scan
+
+    if options.poses is None and not options.sensor_frame:
+        raise SourceError(f"{path}: a Velodyne capture holds no poses: give --poses (one row per revolution); "
+                          "`voxtool odometry` estimates them")
+    decoder_module(str(path))  # the extra's one line before any reading
+    rows = _pose_rows(options, None, "revolutions")
+    bad = BadScans(options.bad_scans)
+
+    def scans():
+        for i, (stamp, points, nbytes) in enumerate(pcap_revolutions(path)):
+            if options.stop is not None and i >= options.stop:
+                break
+            if i < options.start or (i - options.start) % options.every:
+                continue
+            pose = Pose.identity()
+            if rows is not None:
+                if i >= len(rows):
+                    raise SourceError(f"{options.poses}: pose file has {len(rows)} poses, the capture more revolutions "
+                                      f"({i + 1} or more)")
+                stamp_s, pose = rows[i]
+                stamp = int(round(stamp_s * 1e9)) if stamp_s is not None else stamp
+            yield make_scan(points, pose, i, stamp, f"{path}#{i}", nbytes, options)
+
+    return ScanStream("pcap", path, None, scans(), bad)
