@@ -31,11 +31,16 @@ b8d20999f3037c580bf1fe1dcb239c50a8f764ad, MIT), its tests' inputs: pumpAVisualRe
 terrestrial scan of a pump, 155,201 points with intensity and colour), translationWithoutRotation.e57
 (a scan with a pose of translation only) and testWithNormals.e57.
 
+ouster: .fetched/ouster/, two Ouster captures with their metadata JSON from the public repository
+ouster-lidar/ouster-sdk (commit 46b7bcee, its tests/pcaps; BSD-3): OS-1-32-G and OS-2-128-U1, 1024x10.
+Captures voxtool does not decode (docs/sources.md): the tests check the line that says so.
+
     python scripts/fetch_samples.py kitti GIT_DIR     # a clone or mirror of rancheng/mini_kitti_dataset
     python scripts/fetch_samples.py udacity GIT_DIR   # a clone or mirror of udacity/SFND_Lidar_Obstacle_Detection
     python scripts/fetch_samples.py nebula GIT_DIR    # a clone or mirror of tier4/nebula
     python scripts/fetch_samples.py tb3 GIT_DIR       # a clone or mirror of samialperen/oko_slam
     python scripts/fetch_samples.py e57 GIT_DIR       # a clone or mirror of davidcaron/pye57
+    python scripts/fetch_samples.py ouster GIT_DIR    # a clone or mirror of ouster-lidar/ouster-sdk
 """
 
 from __future__ import annotations
@@ -130,6 +135,19 @@ def e57(git_dir: str) -> None:
     print(f"{out}: {', '.join(E57_FILES)}")
 
 
+OUSTER_COMMIT = "46b7bcee"
+OUSTER_FILES = ("OS-1-32-G_v2.1.1_1024x10", "OS-2-128-U1_v2.3.0_1024x10")
+
+
+def ouster(git_dir: str) -> None:
+    out = FETCHED / "ouster"
+    out.mkdir(parents=True, exist_ok=True)
+    for name in OUSTER_FILES:
+        for suffix in (".pcap", ".json"):
+            (out / f"{name}{suffix}").write_bytes(_git(git_dir)("show", f"{OUSTER_COMMIT}:tests/pcaps/{name}{suffix}"))
+    print(f"{out}: {', '.join(OUSTER_FILES)}")
+
+
 def kitti(git_dir: str) -> None:
     git = _git(git_dir)
 
@@ -149,4 +167,4 @@ def kitti(git_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3, "e57": e57}[sys.argv[1]](sys.argv[2])
+    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3, "e57": e57, "ouster": ouster}[sys.argv[1]](sys.argv[2])

@@ -150,3 +150,19 @@ def test_a_file_that_is_no_capture_fails_on_one_line(tmp_path):
     code, _, err = cli("info", bad)
     lines = [line for line in err.splitlines() if line.strip()]
     assert code != 0 and len(lines) == 1 and str(bad) in lines[0] and "pcap" in lines[0]
+
+
+def test_an_ouster_capture_is_one_line_that_says_how_to_convert_it(tmp_path):
+    """Ouster's own test captures (scripts/fetch_samples.py ouster): no Velodyne packet in them, so
+    one line, exit 3, naming the packets' size and the conversion; no map written."""
+    from conftest import FETCHED
+
+    captures = sorted((FETCHED / "ouster").glob("*.pcap"))
+    if not captures:
+        pytest.skip("the Ouster captures are absent (python scripts/fetch_samples.py ouster GIT_DIR)")
+    for capture in captures:
+        (tmp_path / "poses.txt").write_text("0 0 0 0 0 0 0 1\n")
+        code, _, err = cli("build", capture, "--poses", tmp_path / "poses.txt", "-o", tmp_path / "m.vxm", "--no-progress")
+        lines = [line for line in err.splitlines() if line.strip()]
+        assert code == 3 and len(lines) == 1 and not (tmp_path / "m.vxm").exists()
+        assert str(capture) in lines[0] and "no Velodyne data packet" in lines[0] and "ouster-cli" in lines[0]

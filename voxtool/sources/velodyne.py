@@ -103,6 +103,7 @@ def pcap_revolutions(path: Path):
         datalink = reader.datalink()
         decoder = vd.StreamDecoder(vd.Config())
         size = 0
+        others: dict[int, int] = {}  # payload size -> UDP packets that are no Velodyne data packet
 
         def revolution(result):
             nonlocal size
@@ -115,7 +116,9 @@ def pcap_revolutions(path: Path):
             for stamp, buf in reader:
                 payload = _udp_payload(buf, datalink)
                 if payload is None or len(payload) != vd.PACKET_SIZE:
-                    continue  # position (GPS) packets, other traffic
+                    if payload is not None:  # position (GPS) packets, other traffic
+                        others[len(payload)] = others.get(len(payload), 0) + 1
+                    continue
                 size += len(payload)
                 result = decoder.decode(stamp, payload)
                 if result is not None:
@@ -125,6 +128,20 @@ def pcap_revolutions(path: Path):
         result = decoder.finish()
         if result is not None:
             yield revolution(result)
+        elif size == 0:
+            raise SourceError(no_velodyne_packets(path, others))
+
+
+def no_velodyne_packets(path: Path, others: dict[int, int]) -> str:
+    """The one line for a capture without a Velodyne data packet: what it holds instead, and for
+    an Ouster capture (a metadata .json beside it) how to convert it."""
+    held = (f"its {sum(others.values()):,} UDP packets are {max(others, key=others.get)} bytes long (most of them)"
+            if others else "it holds no UDP packet")
+    ouster = (" It looks like an Ouster capture (a .json beside it): voxtool does not decode those (ouster-sdk 1.x's "
+              "licence forbids competing products, 0.x pins rosbags 0.9.23 against voxtool's >= 0.10); write its "
+              "frames as PCD with ouster-sdk's `ouster-cli source CAPTURE save OUT.pcd` and build them with --poses"
+              if any(path.parent.glob(f"{path.stem}*.json")) else "")
+    return (f"{path}: no Velodyne data packet (a 1206-byte UDP payload) in the capture: {held}.{ouster}")
 
 
 def capture_sensor(path: Path, packets: int = 400) -> dict:
