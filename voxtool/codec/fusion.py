@@ -125,12 +125,13 @@ class LatestStates:
         codes, states = latest_per_code(*joined)
         del joined
         need = self.size + codes.shape[0]
-        if need > self._set_codes.shape[0]:  # more room: an eighth more than is needed (growth copies the set once)
+        if need > self._set_codes.shape[0]:  # more room: an eighth more than is needed
             room = need + need // 8
-            grown_codes, grown_states = np.empty(room, np.int64), np.empty(room, np.uint8)
-            grown_codes[:self.size] = self._set_codes[:self.size]
-            grown_states[:self.size] = self._set_states[:self.size]
-            self._set_codes, self._set_states = grown_codes, grown_states
+            # grown in place: a large block is moved by remapping its pages (realloc's mremap), not
+            # copied, so the old set and the new one are never both in memory (a copy was the peak
+            # of merging a long log). Nothing else holds a view of these arrays while packets come.
+            self._set_codes.resize(room, refcheck=False)
+            self._set_states.resize(room, refcheck=False)
         self.size = merge_latest_into(self._set_codes, self._set_states, self.size, codes, states)
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
