@@ -539,14 +539,16 @@ def replay_scans(src: Path, out: Path, scans: int, lap_m: float) -> None:
 CODECS = {"zstd": ["--scheme", "hilbert", "--codec", "zstd"], "cm": ["--scheme", "nested", "--codec", "cm"]}
 
 
-def long(data: Path, scans: int = 141, lap_m: float = 180.0, base: str | None = None, repeats: int = 3) -> dict:
+def long(data: Path, scans: int = 141, lap_m: float = 180.0, base: str | None = None, repeats: int = 3,
+         only: str | None = None) -> dict:
     """Whole commands at 0.2 m and unlimited range on two streams: a long drive (kaist03's 21
     Ouster scans replayed `scans` long, each lap `lap_m` further on: ~9,400 zstd packets, 48 MB)
     and kaist03 itself. Per codec (hilbert/zstd, nested/cm): `encode --json` (its time_encode_s
     against its time_map_s), `merge` and `decode` of the log against `build` of the same scans
     (ratios paired run by run, medians), and `stats`. Then, on the long drive only, per-packet
     costs against the log's length (encode and merge of its first third, two thirds, all).
-    `base`: the same commands of another revision too, run alternately with this one's."""
+    `base`: the same commands of another revision too, run alternately with this one's. `only`:
+    one of the two streams."""
     sys.path.insert(0, str(Path(__file__).parent))
     from worktree import check_imports, revision
 
@@ -559,7 +561,9 @@ def long(data: Path, scans: int = 141, lap_m: float = 180.0, base: str | None = 
             check_imports(tree, Path(tempfile.gettempdir()))
             trees.insert(0, (base, tree))
         streams = {"long": tmp / "long", "kaist03": data / "kaist03" / "pcd"}
-        replay_scans(data / "kaist03" / "pcd", streams["long"], scans, lap_m)
+        streams = {k: v for k, v in streams.items() if only in (None, k)}
+        if "long" in streams:
+            replay_scans(data / "kaist03" / "pcd", streams["long"], scans, lap_m)
         common = ["--resolution", "0.2", "--robot", "r1"]
         commands = []
         for stream, scans_dir in streams.items():
@@ -572,9 +576,9 @@ def long(data: Path, scans: int = 141, lap_m: float = 180.0, base: str | None = 
                              (stream, f"decode {codec}", ["decode", log, "-o", tmp / "d.vxm"])]
         runs: dict[tuple, list] = {}
         encode_json: dict[tuple, list] = {}
-        for _, tree in trees:  # kaist03's commands once, untimed: every revision's kernels compiled
+        for _, tree in trees:  # one stream's commands once, untimed: every revision's kernels compiled
             for stream, _, args in commands:
-                if stream == "kaist03":
+                if stream == list(streams)[-1]:
                     _run(args, tree)
         # the runs alternate between commands and revisions, so that the machine's drift
         # (20-30 % between minutes) falls on all of them alike
@@ -607,8 +611,8 @@ def long(data: Path, scans: int = 141, lap_m: float = 180.0, base: str | None = 
                                    packets=reports[-1]["packets"], log_mb=round(reports[-1]["bytes"] / 1e6, 2))
                     rows.append(row)
         # per packet against the log's length (this revision only): the first third, two thirds, all
-        files = sorted(streams["long"].glob("*.pcd"))
-        for share in (1 / 3, 2 / 3, 1.0):
+        files = sorted(streams["long"].glob("*.pcd")) if "long" in streams else []
+        for share in (1 / 3, 2 / 3, 1.0) if files else ():
             part = tmp / f"part{share:.2f}"
             part.mkdir()
             for f in files[:max(1, round(share * len(files)))]:
@@ -650,6 +654,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=None,
                     help="disk, long: runs of each command (the median is reported; default 5 and 3)")
     ap.add_argument("--scans", type=int, default=141, help="long: scans of the long drive (141: ~9,400 packets)")
+    ap.add_argument("--only", choices=["long", "kaist03"], default=None, help="long: one of its two streams")
     ap.add_argument("--samples", type=int, default=10)
     ap.add_argument("--runs", type=int, default=2, help="codecs: warm runs of each codec (the best is kept)")
     ap.add_argument("--pcd", action="store_true", help="streams: the PCD directories instead of the MCAP files")
@@ -660,7 +665,8 @@ def main() -> None:
               "split": lambda: split(Path(args.data)), "lossless": lambda: lossless(Path(args.data)),
               "codecs": lambda: codecs(Path(args.data), args.runs), "onboard": lambda: onboard(Path(args.data)),
               "disk": lambda: disk(Path(args.data), args.log_mb, args.base, args.repeats or 5),
-              "long": lambda: long(Path(args.data), args.scans, base=args.base, repeats=args.repeats or 3)}[args.mode]()
+              "long": lambda: long(Path(args.data), args.scans, base=args.base, repeats=args.repeats or 3,
+                                   only=args.only)}[args.mode]()
     OUT.mkdir(exist_ok=True)
     suffix = "_pcd" if args.pcd and args.mode == "streams" else ""
     (OUT / f"packets_{args.mode}{suffix}.json").write_text(json.dumps(result, indent=2, default=str))

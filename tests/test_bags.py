@@ -140,7 +140,7 @@ def test_bag_problems_are_one_line(tmp_path, scans, kind):
     path = write_bag(bag_path(tmp_path, kind), scans, kind)
     out = tmp_path / "m.vxm"
     code, _, err = cli("build", path, "-o", out, "--topic", "/nope", "--no-progress")
-    assert code == 3 and err.count("\n") == 1 and "topic '/nope' is not a PointCloud2 or LaserScan topic" in err, err
+    assert code == 3 and err.count("\n") == 1 and "topic '/nope' is not a PointCloud2, LaserScan or VelodyneScan topic" in err, err
     code, _, err = cli("build", path, "-o", out, "--pose-topic", "/points", "--no-progress")
     assert code == 3 and err.count("\n") == 1 and "pose topic '/points' is not Odometry, PoseStamped, PoseWithCovarianceStamped or TransformStamped" in err, err
     nopose = write_bag(bag_path(tmp_path / "nopose", kind) if kind != "ros1" else tmp_path / "nopose.bag",

@@ -119,7 +119,7 @@ BAD_CASES = {
     "point outside key range": (lambda d: _far_point(d), 4, "outside the octree key range"),
     "empty directory": (lambda d: _empty(d), 3, "directory must hold .pcd or .ply scans"),
     "pose rows": (lambda d: _poses(d, 1), 3, "pose file has 1 poses for 2 scans"),
-    "mcap without the topic": (lambda d: _mcap(d), 3, "topic '/nope' is not a PointCloud2 or LaserScan topic"),
+    "mcap without the topic": (lambda d: _mcap(d), 3, "topic '/nope' is not a PointCloud2, LaserScan or VelodyneScan topic"),
     "mcap without transform": (lambda d: _mcap(d, skip_tf=True), 3, "no transform chain from 'nowhere' to 'lidar'"),
     "truncated mcap": (lambda d: _truncate(_mcap(d), 700), 3, "s.mcap"),
     "mcap cloud row_step lies": (lambda d: _mcap(d, cloud_overrides={"row_step": 10**6}), 3,

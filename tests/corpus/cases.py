@@ -284,7 +284,7 @@ CASES = [
      "cannot be read as MCAP: a record declares more bytes than any record may hold: the file is truncated"),
     ("mcap not mcap", mcap_case(mutate=lambda b: b"hello world" * 10), 3,
      "cannot be read as MCAP: it does not start (or end) with the MCAP magic"),
-    ("mcap without the topic", mcap_case(extra=("--topic", "/lidar")), 3, "topic '/lidar' is not a PointCloud2 or LaserScan topic (those topics: /points)"),
+    ("mcap without the topic", mcap_case(extra=("--topic", "/lidar")), 3, "topic '/lidar' is not a PointCloud2, LaserScan or VelodyneScan topic (those topics: /points)"),
     ("mcap without transforms", mcap_case(skip_tf=True), 3, "no transform reaches the scan frame 'lidar' (the log has no /tf transform); pose them with --world-frame lidar"),
     ("mcap point_step beyond row_step", mcap_case(overrides={"point_step": 16}), 3, "point_step 16 x width 30 exceeds row_step 360"),
     ("mcap row_step beyond data", mcap_case(overrides={"row_step": 400}), 3, "data has 360 bytes, row_step x height needs 400"),

@@ -273,7 +273,7 @@ def _source_option_list() -> list:
                      "(instead of its /tf; `voxtool odometry` writes one)."),
         click.option("--no-viewpoint", is_flag=True,
                      help="PCD points are already in the world frame; take only the ray origin from VIEWPOINT/--poses."),
-        click.option("--topic", help="MCAP/bag PointCloud2 or LaserScan topic (default: the only one)."),
+        click.option("--topic", help="MCAP/bag PointCloud2, LaserScan or VelodyneScan topic (default: the only one)."),
         click.option("--world-frame", default=None, help="MCAP/bag /tf frame the map is built in (default: the root of the /tf tree above the cloud's frame)."),
         click.option("--pose-topic", help="MCAP/bag Odometry/PoseStamped topic giving the sensor pose (instead of /tf)."),
         click.option("--bad-scans", type=click.Choice(["fail", "skip"]), default="fail", show_default=True,
