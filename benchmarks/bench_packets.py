@@ -407,6 +407,20 @@ def _run(args: list, tree: Path | None = None, stdout: list | None = None) -> tu
     return wall, rss / 2**20
 
 
+def _trees(base: str | None, tmp: Path, stack: contextlib.ExitStack) -> list[tuple[str, Path | None]]:
+    """[(name, checkout)] to run the commands of: this revision (the installed voxtool, None), and
+    before it `base` checked out in a worktree under tmp (removed when the stack closes)."""
+    trees: list[tuple[str, Path | None]] = [("now", None)]
+    if base is not None:
+        sys.path.insert(0, str(Path(__file__).parent))
+        from worktree import check_imports, revision
+
+        tree = stack.enter_context(revision(base, tmp))
+        check_imports(tree, Path(tempfile.gettempdir()))
+        trees.insert(0, (base, tree))
+    return trees
+
+
 def long_log(packets: list, path: Path, megabytes: float) -> float:
     """A log of `megabytes` or more: the packets written again and again as one robot whose
     sequence and stamps go on (headers rewritten, CRCs made anew). Returns its size in MB."""
@@ -441,20 +455,11 @@ def disk(data: Path, log_mb: float, base: str | None = None, repeats: int = 5) -
     worktree; each command run once untimed first, so that its kernels are compiled)."""
     from voxtool.codec.log import read_log
 
-    sys.path.insert(0, str(Path(__file__).parent))
-    from worktree import revision
-
     scans = data / "kaist03" / "pcd"
     rows = []
     with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         tmp = Path(tmp)
-        trees = [("now", None)]
-        if base is not None:
-            from worktree import check_imports
-
-            tree = stack.enter_context(revision(base, tmp))
-            check_imports(tree, Path(tempfile.gettempdir()))
-            trees.insert(0, (base, tree))
+        trees = _trees(base, tmp, stack)
         log = tmp / "r1.mcap"
         halves = [tmp / "first", tmp / "second"]  # two robots: scans 0-10 and 11-20, a log each
         files = sorted(scans.glob("*.pcd"))
@@ -549,17 +554,10 @@ def long(data: Path, scans: int = 141, lap_m: float = 180.0, base: str | None = 
     costs against the log's length (encode and merge of its first third, two thirds, all).
     `base`: the same commands of another revision too, run alternately with this one's. `only`:
     one of the two streams."""
-    sys.path.insert(0, str(Path(__file__).parent))
-    from worktree import check_imports, revision
-
     rows, growth = [], []
     with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         tmp = Path(tmp)
-        trees = [("now", None)]
-        if base is not None:
-            tree = stack.enter_context(revision(base, tmp))
-            check_imports(tree, Path(tempfile.gettempdir()))
-            trees.insert(0, (base, tree))
+        trees = _trees(base, tmp, stack)
         streams = {"long": tmp / "long", "kaist03": data / "kaist03" / "pcd"}
         streams = {k: v for k, v in streams.items() if only in (None, k)}
         if "long" in streams:
