@@ -35,12 +35,18 @@ ouster: .fetched/ouster/, two Ouster captures with their metadata JSON from the 
 ouster-lidar/ouster-sdk (commit 46b7bcee, its tests/pcaps; BSD-3): OS-1-32-G and OS-2-128-U1, 1024x10.
 Captures voxtool does not decode (docs/sources.md): the tests check the line that says so.
 
+las: .fetched/las/, survey tiles from the public repository laspy/laspy (commit fbc5b37, its tests/data;
+BSD-2): autzen_trim.laz (110,000 points of the Autzen stadium in international feet, NAD83 Oregon
+Lambert, WKT and GeoTIFF keys), simple.las and simple.laz (the same 1,065 points), simple.copc.laz
+(COPC) and file_with_both_wkt_and_geotiff_vlrs.las (US survey feet).
+
     python scripts/fetch_samples.py kitti GIT_DIR     # a clone or mirror of rancheng/mini_kitti_dataset
     python scripts/fetch_samples.py udacity GIT_DIR   # a clone or mirror of udacity/SFND_Lidar_Obstacle_Detection
     python scripts/fetch_samples.py nebula GIT_DIR    # a clone or mirror of tier4/nebula
     python scripts/fetch_samples.py tb3 GIT_DIR       # a clone or mirror of samialperen/oko_slam
     python scripts/fetch_samples.py e57 GIT_DIR       # a clone or mirror of davidcaron/pye57
     python scripts/fetch_samples.py ouster GIT_DIR    # a clone or mirror of ouster-lidar/ouster-sdk
+    python scripts/fetch_samples.py las GIT_DIR       # a clone or mirror of laspy/laspy
 """
 
 from __future__ import annotations
@@ -148,6 +154,18 @@ def ouster(git_dir: str) -> None:
     print(f"{out}: {', '.join(OUSTER_FILES)}")
 
 
+LAS_COMMIT = "fbc5b37"
+LAS_FILES = ("autzen_trim.laz", "simple.las", "simple.laz", "simple.copc.laz", "file_with_both_wkt_and_geotiff_vlrs.las")
+
+
+def las(git_dir: str) -> None:
+    out = FETCHED / "las"
+    out.mkdir(parents=True, exist_ok=True)
+    for name in LAS_FILES:
+        (out / name).write_bytes(_git(git_dir)("show", f"{LAS_COMMIT}:tests/data/{name}"))
+    print(f"{out}: {', '.join(LAS_FILES)}")
+
+
 def kitti(git_dir: str) -> None:
     git = _git(git_dir)
 
@@ -167,4 +185,4 @@ def kitti(git_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3, "e57": e57, "ouster": ouster}[sys.argv[1]](sys.argv[2])
+    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3, "e57": e57, "ouster": ouster, "las": las}[sys.argv[1]](sys.argv[2])

@@ -76,6 +76,15 @@ def e57_files() -> Path:
     return root
 
 
+@pytest.fixture(scope="session")
+def las_files() -> Path:
+    """laspy's test tiles: Autzen in feet, simple.las/.laz/.copc.laz (scripts/fetch_samples.py las)."""
+    root = FETCHED / "las"
+    if not (root / "autzen_trim.laz").is_file():
+        pytest.skip("the LAS samples are absent (python scripts/fetch_samples.py las GIT_DIR)")
+    return root
+
+
 def map_voxels(path):
     """(occupied, free) finest-level Morton codes of a map file, each sorted."""
     import numpy as np

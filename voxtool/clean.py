@@ -407,6 +407,9 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     t0 = time.perf_counter()
     scans = []
     for scan in track(stream.scans, stream.count, "read", progress, unit="scan"):
+        if scan.hits_only:
+            raise ParameterError(f"{scan.source}: has no sensor origin: clean judges points by the rays that "
+                                 "crossed them, and it has none")
         void_map.points.add_codes(point_codes(scan.points, params.resolution, what=f"{scan.source}: point"))
         scans.append(scan)
     t_read = time.perf_counter() - t0

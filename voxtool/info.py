@@ -66,6 +66,12 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
         first = next(iter(sorted(path.glob("*.pcd"))), None) if path.is_dir() else path
         if first is not None:
             out["fields"] = _pcd_fields(first)
+    if kind in ("las", "laz"):
+        from voxtool.sources.las import open_tile, tile_units
+
+        with open_tile(path) as reader:
+            out["units"] = tile_units(reader.header)
+            out["points_in_tile"] = int(reader.header.point_count)
     if kind in ("pcap", "pcapng"):
         span = (max(stamps) - min(stamps)) / 1e9 if len(stamps) > 1 else 0.0
         out["lidar"] = {**_capture_sensor(path), "rate_hz": round((len(stamps) - 1) / span, 2) if span > 0 else None}
@@ -109,6 +115,8 @@ def _file_pose_source(path: Path, kind: str, options: SourceOptions) -> str:
         return f"{found.name}, the camera's poses moved to the LiDAR by calib.txt's Tr (times from times.txt)"
     if kind == "ply":
         return "none: PLY scans need --poses (voxtool odometry estimates them)"
+    if kind in ("las", "laz"):
+        return "none: a survey tile has no sensor origin (its points mark occupied voxels; free space stays unknown)"
     if kind == "e57":
         from voxtool.sources.e57 import open_e57
 

@@ -56,8 +56,9 @@ def build(sources, sample, output, origin, decay, share, ring, workers, schedule
           plot, **kw):
     """Build an occupancy map from SOURCE: a directory of PCD (or PLY + --poses) scans, a single
     PCD/PLY file, a ROS 2 .mcap file, a ROS 1 .bag file, a ROS 2 bag directory (.db3 or .mcap
-    storage), an OctoMap .graph file, a KITTI sequence, an .e57 file (the e57 extra) or a Velodyne
-    .pcap/.pcapng capture (the velodyne extra; with --poses). Bags and MCAP files give PointCloud2,
+    storage), an OctoMap .graph file, a KITTI sequence, an .e57 file (the e57 extra), a Velodyne
+    .pcap/.pcapng capture (the velodyne extra; with --poses) or a .las/.laz survey tile (the las
+    extra; occupied voxels only, --origin auto for projected coordinates). Bags and MCAP files give PointCloud2,
     LaserScan or Velodyne packet (the velodyne extra) scans posed by /tf, --pose-topic, or a pose
     file (--poses: one row per message).
 

@@ -59,6 +59,11 @@ def _rows(f: dict) -> list[tuple[str, str]]:
         rows.append(("points per scan", f"min {pps['min']:,}, median {pps['median']:,.0f}, max {pps['max']:,}"))
     if f.get("fields"):
         rows.append(("fields", " ".join(f["fields"])))
+    if f.get("units"):
+        u = f["units"]
+        h, v = u["horizontal"], u["vertical"]
+        rows.append(("units", f"horizontal {h['name']} ({h['metres']:g} m), vertical {v['name']} ({v['metres']:g} m), "
+                              f"from {u['from']}; read in metres"))
     if f.get("points_invalid"):
         rows.append(("invalid points", f"{f['points_invalid']:,} (a direction only, or no return: build drops them)"))
     if f.get("lidar"):

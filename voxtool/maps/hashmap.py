@@ -260,6 +260,9 @@ class HashVoxelMap:
     def prepare(self, scan: Scan) -> PreparedScan:
         """Input range and key checks only: which misses matter depends on the map, so the rays
         are cast later, against the map as it is then (by update_codes() or apply())."""
+        if scan.hits_only:
+            raise ParameterError(f"{scan.source}: has no sensor origin, so no rays: its occupied voxels are built by "
+                                 "the octree, octocache and tiny backends, not by the hash map's ray casting")
         # prepare() may run ahead on another thread while apply() folds the previous scan in:
         # it follows the schedule's d_in on its own and leaves the map's parameters to apply()
         for i, k, value in self.schedule:

@@ -148,10 +148,31 @@ def trace_scan(scan: Scan, params: MapParams, threads: int = 1, near_hits=None) 
     return run_parts(threads, lambda run: _trace_part(scan, params, *run, near_hits), ray_parts(scan, threads))
 
 
+def hit_bricks(points: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(brick codes, touched masks, endpoint masks) of the voxels holding `points` (in key
+    range), each voxel once: a scan without rays (Scan.hits_only) as the caster's bricks."""
+    from voxtool.kernels.morton import point_codes
+    from voxtool.keys import unique_codes
+
+    codes = np.empty(points.shape[0], dtype=np.int64)
+    point_codes(points, resolution, codes)
+    codes = unique_codes(codes)
+    bricks = unique_codes(codes >> BRICK_BITS)
+    bit = codes & ((1 << BRICK_BITS) - 1)
+    masks = np.zeros((bricks.shape[0], 8), dtype=np.int64)
+    np.bitwise_or.at(masks, (np.searchsorted(bricks, codes >> BRICK_BITS), bit >> 6), np.left_shift(np.int64(1), bit & 63))
+    return bricks, masks, masks.copy()
+
+
 def cast_scan(scan: Scan, params: MapParams, threads: int = 1, group_of=None) -> tuple[ScanBricks | None, int, int]:
     """(the voxels one scan updates as merged bricks, None for no points; its DDA step count;
     rays merged into others, 0 unless params.merge_rays). group_of: ScanBricks.merge."""
     n = scan.points.shape[0]
+    if scan.hits_only:
+        if n == 0:
+            return None, 0, 0
+        coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
+        return ScanBricks.merge(*hit_bricks(scan.points, params.resolution), group_of), 0, 0
     misses = miss_scan(scan, params)
     if n == 0 and misses is None:
         return None, 0, 0

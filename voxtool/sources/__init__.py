@@ -439,6 +439,12 @@ def _open_pcap(path: Path, options: SourceOptions) -> ScanStream:
     return pcap_stream(path, options)
 
 
+def _open_las(path: Path, options: SourceOptions) -> ScanStream:
+    from voxtool.sources.las import las_stream
+
+    return las_stream(path, options)
+
+
 SOURCES: dict[str, Callable[[Path, SourceOptions], ScanStream]] = {
     "pcd": _open_pcd,
     "ply": _open_ply,
@@ -450,6 +456,8 @@ SOURCES: dict[str, Callable[[Path, SourceOptions], ScanStream]] = {
     "e57": _open_e57,
     "pcap": _open_pcap,
     "pcapng": _open_pcap,
+    "las": _open_las,
+    "laz": _open_las,
 }
 BAG_DIRECTORY = "metadata.yaml"  # what makes a directory a ROS 2 bag
 

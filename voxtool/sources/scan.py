@@ -26,6 +26,9 @@ class Scan:
     # miss_range along each beam; their rays clear free space up to miss_range and mark no hit
     misses: np.ndarray | None = None
     miss_range: float = -1.0
+    # no sensor origin (a survey tile): the points mark their voxels occupied and no ray clears
+    # free space (`origin` is then only a place in the tile, for --origin auto)
+    hits_only: bool = False
     extra: dict = field(default_factory=dict)
 
     @property
