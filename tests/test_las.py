@@ -117,3 +117,21 @@ def test_a_file_that_is_not_las_fails_on_one_line(tmp_path):
     lines = [line for line in err.splitlines() if line.strip()]
     assert code != 0 and len(lines) == 1 and str(bad) in lines[0] and "LAS" in lines[0]
     assert not (tmp_path / "m.vxm").exists()
+
+
+def test_every_backend_that_builds_a_tile_and_encode_agree(las_files, tmp_path):
+    """octocache and tiny take the octree's bricks of a tile; encode + merge carries them."""
+    path = las_files / "simple.laz"
+    common = ["--origin", "auto", "--resolution", "0.5", "--no-progress"]
+    assert cli("build", path, "-o", tmp_path / "octree.vxm", *common)[0] == 0
+    reference = map_voxels(tmp_path / "octree.vxm")
+    for backend, extra in (("octocache", []), ("tiny", ["--map-size", "10000"])):  # the tile spans 3.4 x 4.6 km
+        code, _, err = cli("build", path, "--backend", backend, *extra, "-o", tmp_path / f"{backend}.vxm", *common)
+        assert code == 0, err
+        occ, free = map_voxels(tmp_path / f"{backend}.vxm")
+        assert np.array_equal(occ, reference[0]) and free.size == 0, backend
+    code, _, err = cli("encode", path, "-o", tmp_path / "e.mcap", *common)
+    assert code == 0, err
+    assert cli("merge", tmp_path / "e.mcap", "-o", tmp_path / "m.vxm", "--no-progress")[0] == 0
+    occ, free = map_voxels(tmp_path / "m.vxm")
+    assert np.array_equal(occ, reference[0]) and free.size == 0
