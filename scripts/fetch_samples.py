@@ -129,41 +129,34 @@ def tb3(git_dir: str) -> None:
     print(f"{out}: turtlebot3_scan2.bag")
 
 
+def _lay_out(git_dir: str, commit: str, folder: str, names, sample: str) -> None:
+    """Files `names` of `folder` at `commit` of a repository, copied to .fetched/<sample>/."""
+    out = FETCHED / sample
+    out.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        (out / name).write_bytes(_git(git_dir)("show", f"{commit}:{folder}/{name}"))
+    print(f"{out}: {', '.join(names)}")
+
+
 E57_COMMIT = "b8d20999f3037c580bf1fe1dcb239c50a8f764ad"
 E57_FILES = ("pumpAVisualReferenceImage.e57", "translationWithoutRotation.e57", "testWithNormals.e57")
-
-
-def e57(git_dir: str) -> None:
-    out = FETCHED / "e57"
-    out.mkdir(parents=True, exist_ok=True)
-    for name in E57_FILES:
-        (out / name).write_bytes(_git(git_dir)("show", f"{E57_COMMIT}:tests/test_data/{name}"))
-    print(f"{out}: {', '.join(E57_FILES)}")
-
-
 OUSTER_COMMIT = "46b7bcee"
-OUSTER_FILES = ("OS-1-32-G_v2.1.1_1024x10", "OS-2-128-U1_v2.3.0_1024x10")
-
-
-def ouster(git_dir: str) -> None:
-    out = FETCHED / "ouster"
-    out.mkdir(parents=True, exist_ok=True)
-    for name in OUSTER_FILES:
-        for suffix in (".pcap", ".json"):
-            (out / f"{name}{suffix}").write_bytes(_git(git_dir)("show", f"{OUSTER_COMMIT}:tests/pcaps/{name}{suffix}"))
-    print(f"{out}: {', '.join(OUSTER_FILES)}")
-
-
+OUSTER_FILES = tuple(f"{name}{suffix}" for name in ("OS-1-32-G_v2.1.1_1024x10", "OS-2-128-U1_v2.3.0_1024x10")
+                     for suffix in (".pcap", ".json"))
 LAS_COMMIT = "fbc5b37"
 LAS_FILES = ("autzen_trim.laz", "simple.las", "simple.laz", "simple.copc.laz", "file_with_both_wkt_and_geotiff_vlrs.las")
 
 
+def e57(git_dir: str) -> None:
+    _lay_out(git_dir, E57_COMMIT, "tests/test_data", E57_FILES, "e57")
+
+
+def ouster(git_dir: str) -> None:
+    _lay_out(git_dir, OUSTER_COMMIT, "tests/pcaps", OUSTER_FILES, "ouster")
+
+
 def las(git_dir: str) -> None:
-    out = FETCHED / "las"
-    out.mkdir(parents=True, exist_ok=True)
-    for name in LAS_FILES:
-        (out / name).write_bytes(_git(git_dir)("show", f"{LAS_COMMIT}:tests/data/{name}"))
-    print(f"{out}: {', '.join(LAS_FILES)}")
+    _lay_out(git_dir, LAS_COMMIT, "tests/data", LAS_FILES, "las")
 
 
 def kitti(git_dir: str) -> None:
