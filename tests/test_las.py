@@ -135,3 +135,43 @@ def test_every_backend_that_builds_a_tile_and_encode_agree(las_files, tmp_path):
     assert cli("merge", tmp_path / "e.mcap", "-o", tmp_path / "m.vxm", "--no-progress")[0] == 0
     occ, free = map_voxels(tmp_path / "m.vxm")
     assert np.array_equal(occ, reference[0]) and free.size == 0
+
+
+def test_a_tile_with_its_trajectory_casts_rays_from_the_sensor(tmp_path):
+    """The shipped sample's five real scans as one tile (laspy writes it: world points, each
+    scan's points at the scan's GPS time) with the sensor's trajectory (--poses by GPS time): the
+    map of the same points, grouped by time with laspy and written as world-frame PCDs whose
+    VIEWPOINT is the trajectory's position (--no-viewpoint), voxel for voxel; free space cleared."""
+    from pathlib import Path
+
+    from scenes import write_pcd
+
+    import voxtool
+
+    sample = Path(voxtool.__file__).parent / "data" / "sample"
+    scans = list(open_source(sample, SourceOptions()).scans)
+    world = np.concatenate([s.points for s in scans]).astype(np.float64)
+    times = np.concatenate([np.full(len(s.points), 1000.0 + 0.1 * k) for k, s in enumerate(scans)])
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [0.0001] * 3, np.floor(world.min(axis=0))
+    tile = laspy.LasData(header)
+    tile.x, tile.y, tile.z, tile.gps_time = world[:, 0], world[:, 1], world[:, 2], times
+    tile.write(tmp_path / "tile.las")
+    trajectory = tmp_path / "trajectory.txt"
+    trajectory.write_text("".join(f"{1000.0 + 0.1 * k:.1f} " + " ".join(repr(float(v)) for v in s.origin) + " 0 0 0 1\n"
+                                  for k, s in enumerate(scans)))
+    code, text, err = cli("build", tmp_path / "tile.las", "--poses", trajectory, "-o", tmp_path / "las.vxm", "--json",
+                          "--no-progress")
+    assert code == 0, err
+    assert json.loads(text)["scans"] == len(scans) and "no sensor origin" not in err
+    back = laspy.read(str(tmp_path / "tile.las"))
+    xyz = np.stack([np.asarray(back.x), np.asarray(back.y), np.asarray(back.z)], axis=1).astype(np.float32)
+    pcd = tmp_path / "pcd"
+    pcd.mkdir()
+    for k, (t, s) in enumerate(zip(np.unique(np.asarray(back.gps_time)), scans)):
+        write_pcd(pcd / f"{k:03d}.pcd", xyz[np.asarray(back.gps_time) == t], viewpoint=(*map(float, s.origin), 1, 0, 0, 0))
+    assert cli("build", pcd, "--no-viewpoint", "-o", tmp_path / "pcd.vxm", "--no-progress")[0] == 0
+    occ, free = map_voxels(tmp_path / "las.vxm")
+    pcd_occ, pcd_free = map_voxels(tmp_path / "pcd.vxm")
+    assert free.size > occ.size > 1000
+    assert np.array_equal(occ, pcd_occ) and np.array_equal(free, pcd_free)

@@ -4,8 +4,10 @@ A tile is points in a projected coordinate system, often in feet, with no sensor
 coordinates are read as float64, turned into metres by the units its GeoTIFF keys or WKT name,
 and moved to the map's local origin (`--origin auto` for projected coordinates) before they are
 rounded to float32. Without a sensor origin no ray can clear free space: the points mark their
-voxels occupied (Scan.hits_only) and free space stays unknown, which is said on one line. The
-tile is read in chunks of points, each a scan, so a tile larger than memory builds.
+voxels occupied (Scan.hits_only) and free space stays unknown, which is said on one line; with
+the sensor's trajectory by GPS time (--poses), short slices of the points are cast from the
+sensor's position at their time. The tile is read in chunks of points, so a tile larger than
+memory builds.
 """
 
 from __future__ import annotations
@@ -23,6 +25,9 @@ from voxtool.sources.scan import Scan
 
 EXTRA = f"pip install '{DISTRIBUTION}[las]' (laspy with lazrs)"
 CHUNK_POINTS = 2_000_000  # points a scan: a chunk's arrays stay ~100 MB whatever the tile
+# with a trajectory, the points of this many seconds share one sensor position: a vehicle at 15 m/s
+# moves 15 cm in it, a 2 M points/s scanner gives 20,000 points
+SLICE_S = 0.01
 # EPSG linear unit codes of the GeoTIFF keys (ProjLinearUnitsGeoKey 3076, VerticalUnitsGeoKey 4099)
 EPSG_UNITS = {9001: ("metre", 1.0), 9002: ("foot", 0.3048), 9003: ("US survey foot", 1200 / 3937)}
 WKT_UNIT = re.compile(r'(?:LENGTH)?UNIT\[\s*"([^"]+)"\s*,\s*([-+0-9.eE]+)')
@@ -87,47 +92,96 @@ def open_tile(path: Path):
         raise SourceError(f"{path}: not a readable LAS/LAZ file ({text})") from None
 
 
+def _trajectory(path: Path, options, header, shift: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(times, positions about the local origin) of the sensor trajectory given as --poses (its
+    times in the tile's GPS time), None without one."""
+    from voxtool.sources import _pose_rows
+
+    if options.poses is None:
+        return None
+    if "gps_time" not in header.point_format.dimension_names:
+        raise SourceError(f"{path}: point format {header.point_format.id} has no GPS time: a trajectory (--poses) "
+                          "cannot place its points' sensor")
+    rows = _pose_rows(options, None, "poses")
+    if not rows or any(t is None for t, _ in rows):
+        raise SourceError(f"{options.poses}: a tile's trajectory needs a time on every row (TUM: t x y z qx qy qz qw, "
+                          "t in the tile's GPS time)")
+    times = np.array([t for t, _ in rows], np.float64)
+    if np.any(np.diff(times) <= 0):
+        raise SourceError(f"{options.poses}: the trajectory's times must increase")
+    return times, np.array([pose.translation for _, pose in rows], np.float64) - shift
+
+
 def las_stream(path: Path, options):
-    """A tile as a ScanStream: chunks of its points, in metres, occupied voxels only."""
+    """A tile as a ScanStream: chunks of its points in metres, occupied voxels only; or, with a
+    sensor trajectory (--poses, by GPS time), slices of SLICE_S seconds of its points, each cast
+    from the sensor's position at its mean time."""
     from voxtool.errors import ParameterError
     from voxtool.sources import BadScans, ScanStream
 
-    if options.poses is not None:
-        raise SourceError(f"{path}: a tile's points are not in a sensor frame: --poses does not apply (a sensor "
-                          "trajectory by GPS time is not read yet)")
     if isinstance(options.origin, str):
         raise ParameterError(f"--origin {options.origin} was not resolved (resolve_origin) before reading {path}")
+    shift = np.zeros(3) if options.origin is None else np.asarray(options.origin, np.float64)
     with open_tile(path) as reader:
         header = reader.header
         count = int(header.point_count)
         units = tile_units(header)
         centre = (np.asarray(header.mins, np.float64) + np.asarray(header.maxs, np.float64)) / 2
+        trajectory = _trajectory(path, options, header, shift)
     unit = np.array([units["horizontal"]["metres"]] * 2 + [units["vertical"]["metres"]])
-    shift = np.zeros(3) if options.origin is None else np.asarray(options.origin, np.float64)
     # no sensor: the tile's centre stands where a sensor origin would (what --origin auto takes)
     origin = (centre * unit - shift).astype(np.float32)
     chunks = max(1, -(-count // CHUNK_POINTS))
     selected = range(chunks)[options.start:options.stop:options.every]
+    bad = BadScans(options.bad_scans)
+
+    def metres(chunk) -> np.ndarray:
+        points = np.empty((len(chunk), 3), np.float32)
+        axis_m = np.empty(len(chunk), np.float64)
+        for axis, raw in enumerate((chunk.X, chunk.Y, chunk.Z)):
+            # as laspy scales them (integer x scale + offset), then metres about the local origin
+            # in float64, rounded to float32 once
+            np.multiply(raw, header.scales[axis], out=axis_m, casting="unsafe")
+            axis_m += header.offsets[axis]
+            axis_m *= unit[axis]
+            axis_m -= shift[axis]
+            points[:, axis] = axis_m
+        return points
 
     def scans() -> Iterator[Scan]:
-        warnings.warn(f"{path}: a survey tile has no sensor origin: its points mark occupied voxels and free space "
-                      "stays unknown", VoxtoolWarning, stacklevel=2)
+        if trajectory is None:
+            warnings.warn(f"{path}: a survey tile has no sensor origin: its points mark occupied voxels and free "
+                          "space stays unknown (a trajectory by GPS time, --poses, gives its rays)", VoxtoolWarning,
+                          stacklevel=2)
+        index, first, outside = 0, None, 0
         with open_tile(path) as reader:
             for i, chunk in enumerate(reader.chunk_iterator(CHUNK_POINTS)):
                 if i not in selected:
                     continue
-                points = np.empty((len(chunk), 3), np.float32)
-                axis_m = np.empty(len(chunk), np.float64)
-                for axis, raw in enumerate((chunk.X, chunk.Y, chunk.Z)):
-                    # as laspy scales them (integer x scale + offset), then metres about the local
-                    # origin in float64, rounded to float32 once
-                    np.multiply(raw, header.scales[axis], out=axis_m, casting="unsafe")
-                    axis_m += header.offsets[axis]
-                    axis_m *= unit[axis]
-                    axis_m -= shift[axis]
-                    points[:, axis] = axis_m
                 # integers scaled: never NaN, and no sensor whose own position would be a "no return"
-                yield Scan(points, origin, index=i, source=f"{path}#{i}", points_read=len(chunk),
-                           raw_bytes=len(chunk) * header.point_format.size, hits_only=True)
+                points = metres(chunk)
+                if trajectory is None:
+                    yield Scan(points, origin, index=i, source=f"{path}#{i}", points_read=len(chunk),
+                               raw_bytes=len(chunk) * header.point_format.size, hits_only=True)
+                    continue
+                times = np.asarray(chunk.gps_time, np.float64)
+                first = times.min() if first is None else first
+                slot = np.floor((times - first) / SLICE_S).astype(np.int64)
+                order = np.argsort(slot, kind="stable")
+                cuts = np.flatnonzero(np.diff(slot[order])) + 1
+                for part in np.split(order, cuts):
+                    when = float(times[part].mean())
+                    if not trajectory[0][0] <= when <= trajectory[0][-1]:
+                        outside += part.shape[0]
+                        continue
+                    sensor = np.array([np.interp(when, trajectory[0], trajectory[1][:, a]) for a in range(3)])
+                    yield Scan(points[part], sensor.astype(np.float32), index=index, stamp_ns=int(round(when * 1e9)),
+                               source=f"{path}#{i}@{when:.6f}", points_read=part.shape[0],
+                               raw_bytes=part.shape[0] * header.point_format.size)
+                    index += 1
+        if outside:
+            warnings.warn(f"{path}: {outside:,} points lie outside the trajectory's times "
+                          f"({trajectory[0][0]:.6f} .. {trajectory[0][-1]:.6f} s) and were left out", VoxtoolWarning,
+                          stacklevel=2)
 
-    return ScanStream("las", path, len(selected), scans(), BadScans(options.bad_scans))
+    return ScanStream("las", path, len(selected) if trajectory is None else None, scans(), bad)
