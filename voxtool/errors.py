@@ -54,6 +54,11 @@ class ChangeLimitError(VoxtoolError):
     exit_code = 7
 
 
+def first_line(err: Exception) -> str:
+    """An exception's first line of text (a C++ library's errors run over several), or its type."""
+    return (str(err).strip().splitlines() or [type(err).__name__])[0]
+
+
 def mcap_problem(err: Exception) -> str:
     """What is wrong with an MCAP file, from the mcap library's exception, in plain words."""
     import struct

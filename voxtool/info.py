@@ -73,8 +73,9 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
             out["units"] = tile_units(reader.header)
             out["points_in_tile"] = int(reader.header.point_count)
     if kind in ("pcap", "pcapng"):
-        span = (max(stamps) - min(stamps)) / 1e9 if len(stamps) > 1 else 0.0
-        out["lidar"] = {**_capture_sensor(path), "rate_hz": round((len(stamps) - 1) / span, 2) if span > 0 else None}
+        from voxtool.sources.velodyne import capture_sensor
+
+        out["lidar"] = {**capture_sensor(path), "rate_hz": _rate_hz(stamps)}
     if kind == "e57":
         from voxtool.sources.e57 import open_e57
 
@@ -84,11 +85,10 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
     return out
 
 
-def _capture_sensor(path: Path) -> dict:
-    """The model and return mode of a Velodyne capture, as the decoder finds them in its packets."""
-    from voxtool.sources.velodyne import capture_sensor
-
-    return capture_sensor(path)
+def _rate_hz(stamps: list[int]) -> float | None:
+    """Scans a second over the stamps' span (a spinning sensor's revolutions); None without one."""
+    span = _span(stamps)
+    return round((len(stamps) - 1) / span["seconds"], 2) if span and span["seconds"] > 0 else None
 
 
 def _pcd_fields(path: Path) -> list[str]:
@@ -168,8 +168,7 @@ def _log_figures(kind: str, path: Path, topics: list[dict], topic: str, msgtype:
         frame = frame or msg.header.frame_id
     edges = [] if poses is None else sorted(poses.edges.items())
     if found:  # driver packets: the sensor as its decoder found it, and its revolutions per second
-        span = (max(stamps) - min(stamps)) / 1e9 if len(stamps) > 1 else 0.0
-        found["rate_hz"] = round((len(stamps) - 1) / span, 2) if span > 0 else None
+        found["rate_hz"] = _rate_hz(stamps)
     return {"source": str(path), "kind": kind, "topics": topics, "scan_topic": topic, "scan_type": msgtype,
             **({"lidar": found} if found else {}),
             "scans": len(points), "points_per_scan": _spread(points), "time_span": _span(stamps), "scan_frame": frame,

@@ -148,15 +148,12 @@ def trace_scan(scan: Scan, params: MapParams, threads: int = 1, near_hits=None) 
     return run_parts(threads, lambda run: _trace_part(scan, params, *run, near_hits), ray_parts(scan, threads))
 
 
-def hit_bricks(points: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(brick codes, touched masks, endpoint masks) of the voxels holding `points` (in key
-    range), each voxel once: a scan without rays (Scan.hits_only) as the caster's bricks."""
-    from voxtool.kernels.morton import point_codes
-    from voxtool.keys import unique_codes
+def hit_bricks(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(brick codes, touched masks, endpoint masks) of the voxels at `keys` (N, 3), each voxel
+    once: a scan without rays (Scan.hits_only) as the caster's bricks."""
+    from voxtool.keys import morton_encode, unique_codes
 
-    codes = np.empty(points.shape[0], dtype=np.int64)
-    point_codes(points, resolution, codes)
-    codes = unique_codes(codes)
+    codes = unique_codes(morton_encode(keys))
     bricks = unique_codes(codes >> BRICK_BITS)
     bit = codes & ((1 << BRICK_BITS) - 1)
     masks = np.zeros((bricks.shape[0], 8), dtype=np.int64)
@@ -171,8 +168,8 @@ def cast_scan(scan: Scan, params: MapParams, threads: int = 1, group_of=None) ->
     if scan.hits_only:
         if n == 0:
             return None, 0, 0
-        coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
-        return ScanBricks.merge(*hit_bricks(scan.points, params.resolution), group_of), 0, 0
+        keys = coords_to_keys(scan.points, params.resolution, what=f"{scan.source}: point")
+        return ScanBricks.merge(*hit_bricks(keys), group_of), 0, 0
     misses = miss_scan(scan, params)
     if n == 0 and misses is None:
         return None, 0, 0

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from voxtool import DISTRIBUTION
-from voxtool.errors import SourceError
+from voxtool.errors import SourceError, first_line
 from voxtool.geometry import Pose
 from voxtool.sources.scan import Scan
 
@@ -31,17 +31,13 @@ def _pye57(path: Path):
     return pye57
 
 
-def _first_line(err: Exception) -> str:
-    return (str(err).strip().splitlines() or [type(err).__name__])[0]
-
-
 def open_e57(path: Path):
     """The pye57 reader of a file; one line naming the file where it is no readable E57."""
     pye57 = _pye57(path)
     try:
         return pye57.E57(str(path))
     except Exception as err:  # libE57Format raises its own exception types, over several lines
-        raise SourceError(f"{path}: not a readable E57 file ({_first_line(err)})") from None
+        raise SourceError(f"{path}: not a readable E57 file ({first_line(err)})") from None
 
 
 def scan_pose(header) -> Pose | None:
@@ -73,7 +69,7 @@ def scan_points(e57, index: int, where: str) -> tuple[np.ndarray, int]:
     try:
         data = e57.read_scan_raw(index, ignore_unsupported_fields=True)
     except Exception as err:
-        raise SourceError(f"{where}: cannot read its points ({_first_line(err)})") from None
+        raise SourceError(f"{where}: cannot read its points ({first_line(err)})") from None
     if all(f"cartesian{a}" in data for a in "XYZ"):
         xyz = np.stack([np.asarray(data[f"cartesian{a}"], np.float64) for a in "XYZ"], axis=1)
         invalid = data.get("cartesianInvalidState")

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from voxtool import DISTRIBUTION
-from voxtool.errors import SourceError, VoxtoolWarning
+from voxtool.errors import SourceError, VoxtoolWarning, first_line
 from voxtool.sources.scan import Scan
 
 EXTRA = f"pip install '{DISTRIBUTION}[las]' (laspy with lazrs)"
@@ -88,8 +88,7 @@ def open_tile(path: Path):
         backend = laspy.LazBackend.LazrsParallel
         return laspy.open(str(path), laz_backend=backend if backend.is_available() else None)
     except Exception as err:  # laspy and lazrs raise their own types
-        text = (str(err).strip().splitlines() or [type(err).__name__])[0]
-        raise SourceError(f"{path}: not a readable LAS/LAZ file ({text})") from None
+        raise SourceError(f"{path}: not a readable LAS/LAZ file ({first_line(err)})") from None
 
 
 def _trajectory(path: Path, options, header, shift: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

@@ -52,6 +52,12 @@ def _packet_bytes(data) -> bytes:
     return data.tobytes() if hasattr(data, "tobytes") else bytes(data)
 
 
+def _sensor(decoder) -> dict:
+    """The model and return mode a velodyne-decoder ScanDecoder found in the packets it decoded."""
+    return {"model": str(decoder.model_id).rsplit(".", 1)[-1],
+            "return_mode": str(decoder.return_mode).rsplit(".", 1)[-1]}
+
+
 def decode_revolution(where: str, msg) -> tuple[np.ndarray, dict]:
     """(N, 3) float32 sensor-frame points of a VelodyneScan message, and what the decoder found
     (model, return mode)."""
@@ -69,8 +75,7 @@ def decode_revolution(where: str, msg) -> tuple[np.ndarray, dict]:
         _, cloud = decoder.decode(packets)
     except (RuntimeError, ValueError) as err:  # a model it cannot tell, packets it cannot read
         raise SourceError(f"{where}: its Velodyne packets cannot be decoded ({err})") from None
-    found = {"model": str(decoder.model_id).rsplit(".", 1)[-1], "return_mode": str(decoder.return_mode).rsplit(".", 1)[-1]}
-    return np.ascontiguousarray(cloud[:, :3], dtype=np.float32), found
+    return np.ascontiguousarray(cloud[:, :3], dtype=np.float32), _sensor(decoder)
 
 
 def _udp_payload(buf: bytes, datalink: int):
@@ -86,50 +91,61 @@ def _udp_payload(buf: bytes, datalink: int):
     return udp.data if isinstance(udp, dpkt.udp.UDP) else None
 
 
-def pcap_revolutions(path: Path):
-    """(capture stamp in ns, (N, 3) float32 sensor-frame points, bytes) of each revolution of a
-    Velodyne capture (.pcap or .pcapng: the sensor's UDP data packets; others are passed over),
-    cut where the azimuth wraps, as the driver cuts them."""
+def _data_packets(path: Path, packet_size: int, others: dict[int, int]):
+    """(capture stamp, payload) of each Velodyne data packet of a capture (.pcap or .pcapng);
+    the other UDP payloads (position packets, other traffic) are counted by size in `others`."""
     import struct
 
     import dpkt
 
-    vd = decoder_module(str(path))
     with open(path, "rb") as f:
         try:
             reader = dpkt.pcap.UniversalReader(f)
         except (ValueError, dpkt.Error) as err:
             raise SourceError(f"{path}: not a pcap or pcapng capture ({err})") from None
         datalink = reader.datalink()
-        decoder = vd.StreamDecoder(vd.Config())
-        size = 0
-        others: dict[int, int] = {}  # payload size -> UDP packets that are no Velodyne data packet
-
-        def revolution(result):
-            nonlocal size
-            stamp, cloud = result
-            out = int(round(stamp.host * 1e9)), np.ascontiguousarray(cloud[:, :3], dtype=np.float32), size
-            size = 0
-            return out
-
         try:
             for stamp, buf in reader:
                 payload = _udp_payload(buf, datalink)
-                if payload is None or len(payload) != vd.PACKET_SIZE:
-                    if payload is not None:  # position (GPS) packets, other traffic
-                        others[len(payload)] = others.get(len(payload), 0) + 1
+                if payload is None:
                     continue
-                size += len(payload)
-                result = decoder.decode(stamp, payload)
-                if result is not None:
-                    yield revolution(result)
+                if len(payload) != packet_size:
+                    others[len(payload)] = others.get(len(payload), 0) + 1
+                    continue
+                yield stamp, payload
         except (ValueError, dpkt.Error, struct.error) as err:
             raise SourceError(f"{path}: the capture cannot be read on ({err})") from None
-        result = decoder.finish()
+
+
+def pcap_revolutions(path: Path):
+    """(capture stamp in ns, (N, 3) float32 sensor-frame points, bytes) of each revolution of a
+    Velodyne capture (.pcap or .pcapng: the sensor's UDP data packets; others are passed over),
+    cut where the azimuth wraps, as the driver cuts them."""
+    vd = decoder_module(str(path))
+    decoder = vd.StreamDecoder(vd.Config())
+    size = 0
+    others: dict[int, int] = {}  # payload size -> UDP packets that are no Velodyne data packet
+
+    def revolution(result):
+        nonlocal size
+        stamp, cloud = result
+        out = int(round(stamp.host * 1e9)), np.ascontiguousarray(cloud[:, :3], dtype=np.float32), size
+        size = 0
+        return out
+
+    for stamp, payload in _data_packets(path, vd.PACKET_SIZE, others):
+        size += len(payload)
+        try:
+            result = decoder.decode(stamp, payload)
+        except ValueError as err:
+            raise SourceError(f"{path}: the capture cannot be read on ({err})") from None
         if result is not None:
             yield revolution(result)
-        elif size == 0:
-            raise SourceError(no_velodyne_packets(path, others))
+    result = decoder.finish()
+    if result is not None:
+        yield revolution(result)
+    elif size == 0:
+        raise SourceError(no_velodyne_packets(path, others))
 
 
 def no_velodyne_packets(path: Path, others: dict[int, int]) -> str:
@@ -146,24 +162,17 @@ def no_velodyne_packets(path: Path, others: dict[int, int]) -> str:
 
 def capture_sensor(path: Path, packets: int = 400) -> dict:
     """{model, return_mode} of a capture, decoded from its first data packets ({} without any)."""
-    import dpkt
+    from itertools import islice
 
     vd = decoder_module(str(path))
     found = vd.PacketVector()
-    with open(path, "rb") as f:
-        reader = dpkt.pcap.UniversalReader(f)
-        datalink = reader.datalink()
-        for stamp, buf in reader:
-            payload = _udp_payload(buf, datalink)
-            if payload is not None and len(payload) == vd.PACKET_SIZE:
-                found.append(vd.VelodynePacket(stamp, payload))
-                if len(found) >= packets:
-                    break
+    for stamp, payload in islice(_data_packets(path, vd.PACKET_SIZE, {}), packets):
+        found.append(vd.VelodynePacket(stamp, payload))
     if not len(found):
         return {}
     decoder = vd.ScanDecoder(vd.Config())
     decoder.decode(found)
-    return {"model": str(decoder.model_id).rsplit(".", 1)[-1], "return_mode": str(decoder.return_mode).rsplit(".", 1)[-1]}
+    return _sensor(decoder)
 
 
 def pcap_stream(path: Path, options):
@@ -180,11 +189,10 @@ def pcap_stream(path: Path, options):
     bad = BadScans(options.bad_scans)
 
     def scans():
-        for i, (stamp, points, nbytes) in enumerate(pcap_revolutions(path)):
-            if options.stop is not None and i >= options.stop:
-                break
-            if i < options.start or (i - options.start) % options.every:
-                continue
+        from itertools import islice
+
+        for i, (stamp, points, nbytes) in islice(enumerate(pcap_revolutions(path)), options.start, options.stop,
+                                                  options.every):
             pose = Pose.identity()
             if rows is not None:
                 if i >= len(rows):
