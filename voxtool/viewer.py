@@ -304,15 +304,21 @@ def show(scene: Scene, name: str, show_free: bool = False, layer: int | None = N
         raise VoxtoolError("cannot open a window (no display?): use --screenshot PATH, or run under xvfb-run")
     _style(vis)
 
-    def redraw(first: bool = False) -> None:
+    def draw(first: bool = False) -> None:
         for geometry in state["shown"]:
             vis.remove_geometry(geometry, reset_bounding_box=False)
         state["shown"] = geometries(scene, state["free"], state["layer"])
         for geometry in state["shown"]:
             vis.add_geometry(geometry, reset_bounding_box=first)
+
+    def say() -> None:
         where = "all heights" if state["layer"] is None else \
             f"slice z = {keys_to_coords(np.array([state['layer']]), scene.resolution)[0]:.2f} m"
         print(f"voxtool view: {where}, free {'on' if state['free'] else 'off'}", file=sys.stderr)
+
+    def redraw() -> None:
+        draw()
+        say()
 
     def toggle_free(_vis) -> bool:
         state["free"] = not state["free"]
@@ -338,8 +344,11 @@ def show(scene: Scene, name: str, show_free: bool = False, layer: int | None = N
     vis.register_key_callback(ord("S"), toggle_slice)
     vis.register_key_callback(ord("["), move(-1))
     vis.register_key_callback(ord("]"), move(1))
-    redraw(first=True)
+    draw(first=True)
     _camera(vis, scene)
+    # the first line once the window is set up: a Ctrl-C that came while Open3D converted the
+    # camera's arguments surfaced as its TypeError (exit 1), not as KeyboardInterrupt (130)
+    say()
     try:
         # Open3D's run() holds the interpreter until the window closes, so Ctrl-C did nothing;
         # this loop returns to Python every frame, where KeyboardInterrupt ends it
