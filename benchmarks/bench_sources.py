@@ -6,9 +6,12 @@ scans written as PCD (sensor frame, the same poses), and the decoder's own rate.
 Inputs (scripts/fetch_samples.py; a missing one is left out of the table): TIER IV nebula's
 VLS-128 and VLP-32C packet bags (velodyne-decoder), a pcap of the VLS-128 packets (dpkt writes it
 here), pye57's real terrestrial scan as E57, and a 3 M-point survey tile that laspy writes here as
-LAS and LAZ from the shared kaist03 scans (no PCD twin: a tile builds its occupied voxels only). The maps of each pair are checked equal
-(for the pcap: the same points; its revolutions are cut where the azimuth wraps). Medians of
-`repeats` runs alternating between the two commands of a pair. Prints a table and writes
+LAS and LAZ from the shared kaist03 scans (no PCD twin: a tile builds its occupied voxels only).
+A packet bag is also timed against its scans as PointCloud2 messages in the same kind of bag
+(sqlite, types named, not defined): what the decoding itself adds, the bag's own start-up (rosbags
+and its type store) being in both. The maps of each pair are checked equal (for the pcap: the
+same points; its revolutions are cut where the azimuth wraps). Medians of `repeats` runs
+alternating between the commands of an input. Prints a table and writes
 bench-results/sources.json.
 """
 
@@ -28,9 +31,9 @@ FETCHED = ROOT / ".fetched"
 OUT = Path("bench-results")
 
 
-def _pairs(tmp: Path) -> list[tuple[str, list, list, int, tuple]]:
+def _pairs(tmp: Path) -> list[tuple]:
     """(name, build args of the recording, build args of its scans as PCD, points, (path,
-    SourceOptions) that read it) per input."""
+    SourceOptions) that read it[, build args of its scans as a PointCloud2 bag]) per input."""
     from voxtool.io.export import pcd_header, pcd_rows
     from voxtool.sources import SourceOptions, open_source
 
@@ -42,14 +45,34 @@ def _pairs(tmp: Path) -> list[tuple[str, list, list, int, tuple]]:
             n += len(s.points)
         return n
 
+    def as_cloud_bag(scans, folder: Path, frame: str) -> None:
+        """The scans as PointCloud2 messages in a ROS 2 sqlite bag that, as the packet bags, names
+        its types without defining them (a bag recorded before Iron): the same container, so the
+        two builds differ by the decoding alone."""
+        import sqlite3
+
+        sys.path.insert(0, str(ROOT / "tests"))
+        from bag_writer import _store, cloud
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        store = _store("ros2")
+        with Writer(folder, version=8, storage_plugin=StoragePlugin.SQLITE3) as writer:
+            topic = writer.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=store)
+            for s in scans:
+                msg = cloud(store.types, "ros2", s.points, s.stamp_ns, frame)
+                writer.write(topic, s.stamp_ns, store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
+        with sqlite3.connect(next(folder.glob("*.db3"))) as db:
+            db.execute("DELETE FROM message_definitions")
+
     pairs = []
     for sensor, frame in (("vls128", "velodyne_top"), ("vlp32", "velodyne_front")):
         bag = FETCHED / "nebula" / sensor
         if (bag / "metadata.yaml").is_file():
             scans = list(open_source(bag, SourceOptions(world_frame=frame)).scans)
             n = as_pcd(scans, tmp / f"{sensor}_pcd")
+            as_cloud_bag(scans, tmp / f"{sensor}_clouds", frame)
             pairs.append((f"{sensor} packet bag", [bag, "--world-frame", frame], [tmp / f"{sensor}_pcd"], n,
-                          (bag, SourceOptions(world_frame=frame))))
+                          (bag, SourceOptions(world_frame=frame)), [tmp / f"{sensor}_clouds", "--world-frame", frame]))
     bag = FETCHED / "nebula" / "vls128"
     if (bag / "metadata.yaml").is_file():
         sys.path.insert(0, str(ROOT / "tests"))
@@ -101,7 +124,7 @@ def main() -> None:
         tmp = Path(tmp)
         from voxtool.sources import open_source
 
-        for name, recording, pcd, points, (path, options) in _pairs(tmp):
+        for name, recording, pcd, points, (path, options), *clouds in _pairs(tmp):
             reads = []
             for _ in range(args.repeats):  # the decoder alone, in this process
                 t0 = time.perf_counter()
@@ -110,12 +133,15 @@ def main() -> None:
             common = ["--resolution", args.resolution]
             a = ["build", *recording, "-o", tmp / "a.vxm", *common]
             b = ["build", *pcd, "-o", tmp / "b.vxm", *common] if pcd else None
+            c = ["build", *clouds[0], "-o", tmp / "c.vxm", *common] if clouds else None
             _run(a)  # the kernels and the decoder loaded once before timing
-            times = {"recording": [], "pcd": []}
+            times = {"recording": [], "pcd": [], "clouds": []}
             for _ in range(args.repeats):
                 times["recording"].append(_run(a)[0])
                 if b:
                     times["pcd"].append(_run(b)[0])
+                if c:
+                    times["clouds"].append(_run(c)[0])
             row = {"input": name, "points": points, "build_recording_s": round(float(np.median(times["recording"])), 3),
                    "read_Mpoints_per_s": round(float(np.median(reads)) / 1e6, 2)}
             if b:
@@ -124,11 +150,20 @@ def main() -> None:
                                                                                       times["pcd"])])), 3)
                 row["maps_equal"] = all(np.array_equal(x, y) for x, y in zip(map_voxels(tmp / "a.vxm"),
                                                                             map_voxels(tmp / "b.vxm")))
+            if c:  # the decoding alone: the same scans as clouds in the same bag container
+                row["build_clouds_s"] = round(float(np.median(times["clouds"])), 3)
+                row["recording_vs_clouds"] = round(float(np.median([x / y for x, y in zip(times["recording"],
+                                                                                         times["clouds"])])), 3)
+                row["maps_equal"] = row["maps_equal"] and all(
+                    np.array_equal(x, y) for x, y in zip(map_voxels(tmp / "a.vxm"), map_voxels(tmp / "c.vxm")))
             rows.append(row)
-    print(f"{'input':<22} {'points':>9} {'build it':>9} {'as PCD':>8} {'ratio':>6} {'read Mpt/s':>11} maps equal")
+    print(f"{'input':<22} {'points':>9} {'build it':>9} {'as PCD':>8} {'ratio':>6} {'as clouds':>9} {'ratio':>6} "
+          f"{'read Mpt/s':>11} maps equal")
     for r in rows:
         pcd = f"{r['build_pcd_s']:>7.2f}s {r['recording_vs_pcd']:>6.2f}" if "build_pcd_s" in r else f"{'':>8} {'':>6}"
-        print(f"{r['input']:<22} {r['points']:>9,} {r['build_recording_s']:>8.2f}s {pcd} "
+        clouds = (f"{r['build_clouds_s']:>8.2f}s {r['recording_vs_clouds']:>6.2f}" if "build_clouds_s" in r
+                  else f"{'':>9} {'':>6}")
+        print(f"{r['input']:<22} {r['points']:>9,} {r['build_recording_s']:>8.2f}s {pcd} {clouds} "
               f"{r['read_Mpoints_per_s']:>11} {r.get('maps_equal', '')}")
     OUT.mkdir(exist_ok=True)
     (OUT / "sources.json").write_text(json.dumps({"repeats": args.repeats, "resolution": args.resolution, "rows": rows},

@@ -137,11 +137,17 @@ def test_every_backend_that_builds_a_tile_and_encode_agree(las_files, tmp_path):
     assert np.array_equal(occ, reference[0]) and free.size == 0
 
 
-def test_a_tile_with_its_trajectory_casts_rays_from_the_sensor(tmp_path):
+@pytest.mark.parametrize("chunk_points", [None, 10_007])
+def test_a_tile_with_its_trajectory_casts_rays_from_the_sensor(tmp_path, monkeypatch, chunk_points):
     """The shipped sample's five real scans as one tile (laspy writes it: world points, each
     scan's points at the scan's GPS time) with the sensor's trajectory (--poses by GPS time): the
     map of the same points, grouped by time with laspy and written as world-frame PCDs whose
-    VIEWPOINT is the trajectory's position (--no-viewpoint), voxel for voxel; free space cleared."""
+    VIEWPOINT is the trajectory's position (--no-viewpoint), voxel for voxel; free space cleared.
+    Read in chunks that cut every scan (10,007 points), still one scan a time slice."""
+    import voxtool.sources.las as las
+
+    if chunk_points:
+        monkeypatch.setattr(las, "CHUNK_POINTS", chunk_points)
     from pathlib import Path
 
     from scenes import write_pcd
@@ -175,3 +181,20 @@ def test_a_tile_with_its_trajectory_casts_rays_from_the_sensor(tmp_path):
     pcd_occ, pcd_free = map_voxels(tmp_path / "pcd.vxm")
     assert free.size > occ.size > 1000
     assert np.array_equal(occ, pcd_occ) and np.array_equal(free, pcd_free)
+
+
+def test_the_tile_warning_is_said_once_and_info_reads_the_header_only(las_files, monkeypatch):
+    """`--origin auto` peeks at the first scan before the build reads them all: the tile's
+    one-line warning is still said once. `info` gives the chunks from the header's point count,
+    without reading (or warning about) a point."""
+    import voxtool.sources.las as las
+
+    code, _, err = cli("build", las_files / "autzen_trim.laz", "--origin", "auto", "--no-progress")
+    assert code == 0 and err.count("no sensor origin") == 1, err
+    monkeypatch.setattr(las, "CHUNK_POINTS", 100)
+    monkeypatch.setattr(las, "las_stream", None)  # info must not read the scans
+    code, text, err = cli("info", las_files / "simple.laz", "--json")
+    info = json.loads(text)
+    assert code == 0 and "warning" not in err, err
+    assert info["points_in_tile"] == 1065 and info["scans"] == 11
+    assert info["points_per_scan"] == {"min": 65, "median": 100.0, "max": 100}

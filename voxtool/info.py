@@ -43,6 +43,8 @@ def describe(source: str | Path, options: SourceOptions | None = None) -> dict:
 
 def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
     """Files of scans (PCD, PLY, graph): every scan read, as build would read it."""
+    if kind in ("las", "laz") and options.poses is None:
+        return _describe_tile(path, kind, options)
     unposed = None
     try:
         stream = open_source(path, options)
@@ -67,11 +69,7 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
         if first is not None:
             out["fields"] = _pcd_fields(first)
     if kind in ("las", "laz"):
-        from voxtool.sources.las import open_tile, tile_units
-
-        with open_tile(path) as reader:
-            out["units"] = tile_units(reader.header)
-            out["points_in_tile"] = int(reader.header.point_count)
+        out.update(_tile_header(path))
     if kind in ("pcap", "pcapng"):
         from voxtool.sources.velodyne import capture_sensor
 
@@ -83,6 +81,25 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
         out["fields"] = list(e57.get_header(0).point_fields)
         out["points_invalid"] = int(sum(invalid))  # a direction only, or no return: dropped by build
     return out
+
+
+def _tile_header(path: Path) -> dict:
+    from voxtool.sources.las import open_tile, tile_units
+
+    with open_tile(path) as reader:
+        return {"units": tile_units(reader.header), "points_in_tile": int(reader.header.point_count)}
+
+
+def _describe_tile(path: Path, kind: str, options: SourceOptions) -> dict:
+    """A survey tile without a trajectory, from its header alone: its scans are chunks of its
+    points, and reading them all (a LAZ tile of a billion points takes minutes) would tell nothing more."""
+    from voxtool.sources.las import CHUNK_POINTS
+
+    tile = _tile_header(path)
+    count = tile["points_in_tile"]
+    sizes = [min(CHUNK_POINTS, count - start) for start in range(0, count, CHUNK_POINTS)] or [0]
+    return {"source": str(path), "kind": "las", "scans": len(sizes), "points_per_scan": _spread(sizes),
+            "time_span": None, "pose_source": _file_pose_source(path, kind, options), **tile}
 
 
 def _rate_hz(stamps: list[int]) -> float | None:

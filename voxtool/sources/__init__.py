@@ -6,6 +6,7 @@ SOURCES maps a kind to its opener; `open_source` picks the kind from the path.
 from __future__ import annotations
 
 import re
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from itertools import islice
@@ -13,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from voxtool.errors import ParameterError, SourceError
+from voxtool.errors import ParameterError, SourceError, VoxtoolWarning
 from voxtool.geometry import Pose
 from voxtool.sources.scan import Scan
 
@@ -544,7 +545,9 @@ def resolve_origin(path: str | Path, options: SourceOptions, resolution: float) 
     if options.origin is None:
         return options
     if isinstance(options.origin, str):
-        first = next(iter(open_source(path, replace(options, origin=None, start=0, stop=1, every=1)).scans), None)
+        with warnings.catch_warnings():  # what the source says of its scans, it says when they are read
+            warnings.simplefilter("ignore", VoxtoolWarning)
+            first = next(iter(open_source(path, replace(options, origin=None, start=0, stop=1, every=1)).scans), None)
         if first is None:
             raise SourceError(f"{path}: --origin auto: the source holds no scan to take the origin from")
         where = np.asarray(first.origin, dtype=np.float64)

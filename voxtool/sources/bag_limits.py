@@ -14,8 +14,9 @@ def bag_errors() -> tuple:
     from rosbags.highlevel import AnyReaderError
     from rosbags.rosbag1 import ReaderError as Reader1Error
     from rosbags.rosbag2 import ReaderError as Reader2Error
+    from rosbags.serde import SerdeError
 
-    errors = [AnyReaderError, Reader1Error, Reader2Error, ValueError, EOFError, KeyError, IndexError, struct.error,
+    errors = [AnyReaderError, Reader1Error, Reader2Error, SerdeError, ValueError, EOFError, KeyError, IndexError, struct.error,
               zlib.error, AssertionError, OSError, BagBomb]
     try:
         import sqlite3

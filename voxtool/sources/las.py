@@ -153,6 +153,7 @@ def las_stream(path: Path, options):
                           "space stays unknown (a trajectory by GPS time, --poses, gives its rays)", VoxtoolWarning,
                           stacklevel=2)
         index, first, outside = 0, None, 0
+        held = (np.empty((0, 3), np.float32), np.empty(0))  # the points of a slice the chunk's end may have cut
         with open_tile(path) as reader:
             for i, chunk in enumerate(reader.chunk_iterator(CHUNK_POINTS)):
                 if i not in selected:
@@ -165,7 +166,18 @@ def las_stream(path: Path, options):
                     continue
                 times = np.asarray(chunk.gps_time, np.float64)
                 first = times.min() if first is None else first
+                points, times = np.concatenate([held[0], points]), np.concatenate([held[1], times])
                 slot = np.floor((times - first) / SLICE_S).astype(np.int64)
+                if i + 1 < chunks and i + 1 in selected:
+                    # a tile stored in time order cuts a slice at a chunk's end: its points wait for the
+                    # rest of it in the next chunk, so that the slice is one scan
+                    last = slot == slot.max()
+                    held = (points[last], times[last])
+                    points, times, slot = points[~last], times[~last], slot[~last]
+                else:
+                    held = held[0][:0], held[1][:0]
+                if not slot.size:
+                    continue
                 order = np.argsort(slot, kind="stable")
                 cuts = np.flatnonzero(np.diff(slot[order])) + 1
                 for part in np.split(order, cuts):
