@@ -119,6 +119,22 @@ def test_a_file_that_is_not_las_fails_on_one_line(tmp_path):
     assert not (tmp_path / "m.vxm").exists()
 
 
+@pytest.mark.parametrize("name, keep", [("simple.las", 5000), ("autzen_trim.laz", 30000), ("simple.copc.laz", 3000)])
+def test_a_tile_cut_short_fails_on_one_line(las_files, tmp_path, name, keep):
+    """A copy of a real tile cut short: one line naming it and the points its header declares,
+    exit 3, nothing written (laspy and lazrs raise numpy's and their own errors mid-read)."""
+    cut = tmp_path / name
+    cut.write_bytes((las_files / name).read_bytes()[:keep])
+    commands = [["build", cut, "--origin", "auto", "-o", tmp_path / "m.vxm"]]
+    if name.endswith(".las"):  # its size tells, so info (which reads the header only) says so too
+        commands.append(["info", cut])
+    for args in commands:
+        code, _, err = cli(*args, "--no-progress") if args[0] == "build" else cli(*args)
+        lines = [line for line in err.splitlines() if line.strip() and "warning" not in line]
+        assert code == 3 and len(lines) == 1 and str(cut) in lines[0] and "declares" in lines[0], err
+    assert not (tmp_path / "m.vxm").exists()
+
+
 def test_every_backend_that_builds_a_tile_and_encode_agree(las_files, tmp_path):
     """octocache and tiny take the octree's bricks of a tile; encode + merge carries them."""
     path = las_files / "simple.laz"

@@ -144,6 +144,29 @@ def test_a_capture_holds_the_points_of_its_packets(nebula_bags, tmp_path, fmt):
         capture, SourceOptions(sensor_frame=True)).scans]).tolist())) == sorted(map(tuple, from_bag.tolist()))
 
 
+def test_a_capture_cut_short_reads_up_to_its_cut_record_and_says_so(nebula_bags, tmp_path):
+    """A recording that was stopped: the file ends inside its last record (in the packet, or in
+    the record's header). The packets before it read as the capture without that record, with
+    one warning (dpkt itself yields a record cut in its data as if whole, and raises on a cut
+    header)."""
+    import warnings
+
+    whole = _capture(_bag(nebula_bags, "vlp16"), tmp_path / "whole.pcap", "pcap").read_bytes()
+    record = 16 + 14 + 20 + 8 + 1206  # pcap record header, Ethernet, IP, UDP, a data packet
+    (tmp_path / "ends_whole.pcap").write_bytes(whole[:-record])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a capture of whole records: no warning
+        expected = [s.points for s in open_source(tmp_path / "ends_whole.pcap", SourceOptions(sensor_frame=True)).scans]
+    for name, keep in (("in_packet", len(whole) - 500), ("in_header", len(whole) - record + 8)):
+        cut = tmp_path / f"{name}.pcap"
+        cut.write_bytes(whole[:keep])
+        code, text, err = cli("info", cut, "--json")
+        assert code == 0 and err.count("cut short in its last record") == 1, err
+        assert json.loads(text)["scans"] == len(expected)
+        got = [s.points for s in open_source(cut, SourceOptions(sensor_frame=True)).scans]
+        assert len(got) == len(expected) and all(np.array_equal(a, b) for a, b in zip(got, expected))
+
+
 def test_a_file_that_is_no_capture_fails_on_one_line(tmp_path):
     bad = tmp_path / "x.pcap"
     bad.write_bytes(b"not a capture at all" * 10)

@@ -4,11 +4,12 @@ its topics, the /tf tree, and the pose source `build` would use, or why there is
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from voxtool.errors import SourceError, VoxtoolError
+from voxtool.errors import SourceError, VoxtoolError, VoxtoolWarning
 from voxtool.sources import SourceOptions, detect_kind, open_source
 
 
@@ -73,7 +74,10 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
     if kind in ("pcap", "pcapng"):
         from voxtool.sources.velodyne import capture_sensor
 
-        out["lidar"] = {**capture_sensor(path), "rate_hz": _rate_hz(stamps)}
+        with warnings.catch_warnings():  # the scans' read has said what is wrong with the capture
+            warnings.simplefilter("ignore", VoxtoolWarning)
+            sensor = capture_sensor(path)
+        out["lidar"] = {**sensor, "rate_hz": _rate_hz(stamps)}
     if kind == "e57":
         from voxtool.sources.e57 import open_e57
 
@@ -84,9 +88,10 @@ def _describe_stream(path: Path, kind: str, options: SourceOptions) -> dict:
 
 
 def _tile_header(path: Path) -> dict:
-    from voxtool.sources.las import open_tile, tile_units
+    from voxtool.sources.las import check_complete, open_tile, tile_units
 
     with open_tile(path) as reader:
+        check_complete(path, reader.header)
         return {"units": tile_units(reader.header), "points_in_tile": int(reader.header.point_count)}
 
 

@@ -91,6 +91,36 @@ def open_tile(path: Path):
         raise SourceError(f"{path}: not a readable LAS/LAZ file ({first_line(err)})") from None
 
 
+def check_complete(path: Path, header) -> None:
+    """One line where an uncompressed tile is shorter than the points its header declares (a
+    copy cut short); a compressed one is checked as its chunks are read."""
+    if header.are_points_compressed:
+        return
+    count, size = int(header.point_count), header.point_format.size
+    held = (path.stat().st_size - header.offset_to_point_data) // size
+    if held < count:
+        raise SourceError(f"{path}: holds {max(held, 0):,} points, its header declares {count:,}: truncated")
+
+
+def _chunks(path: Path, reader, count: int) -> Iterator:
+    """The tile's points in chunks of CHUNK_POINTS; one line naming the file where its point data
+    is cut short or damaged (laspy and lazrs raise their own types, or numpy's)."""
+    read = 0
+    chunks = reader.chunk_iterator(CHUNK_POINTS)
+    while True:
+        try:
+            chunk = next(chunks)
+        except StopIteration:
+            break
+        except Exception as err:
+            raise SourceError(f"{path}: its points cannot be read past point {read:,} of the {count:,} its header "
+                              f"declares: truncated or damaged ({first_line(err) or type(err).__name__})") from None
+        read += len(chunk)
+        yield chunk
+    if read < count:
+        raise SourceError(f"{path}: holds {read:,} points, its header declares {count:,}: truncated")
+
+
 def _trajectory(path: Path, options, header, shift: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(times, positions about the local origin) of the sensor trajectory given as --poses (its
     times in the tile's GPS time), None without one."""
@@ -124,6 +154,7 @@ def las_stream(path: Path, options):
     with open_tile(path) as reader:
         header = reader.header
         count = int(header.point_count)
+        check_complete(path, header)
         units = tile_units(header)
         centre = (np.asarray(header.mins, np.float64) + np.asarray(header.maxs, np.float64)) / 2
         trajectory = _trajectory(path, options, header, shift)
@@ -155,7 +186,7 @@ def las_stream(path: Path, options):
         index, first, outside = 0, None, 0
         held = (np.empty((0, 3), np.float32), np.empty(0))  # the points of a slice the chunk's end may have cut
         with open_tile(path) as reader:
-            for i, chunk in enumerate(reader.chunk_iterator(CHUNK_POINTS)):
+            for i, chunk in enumerate(_chunks(path, reader, count)):
                 if i not in selected:
                     continue
                 # integers scaled: never NaN, and no sensor whose own position would be a "no return"

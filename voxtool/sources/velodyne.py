@@ -98,7 +98,8 @@ def _data_packets(path: Path, packet_size: int, others: dict[int, int]):
 
     import dpkt
 
-    with open(path, "rb") as f:
+    with open(path, "rb") as raw:
+        f = _ShortReads(raw)
         try:
             reader = dpkt.pcap.UniversalReader(f)
         except (ValueError, dpkt.Error) as err:
@@ -106,6 +107,8 @@ def _data_packets(path: Path, packet_size: int, others: dict[int, int]):
         datalink = reader.datalink()
         try:
             for stamp, buf in reader:
+                if f.short:  # the last record, cut short: what came before it is whole
+                    break
                 payload = _udp_payload(buf, datalink)
                 if payload is None:
                     continue
@@ -113,8 +116,35 @@ def _data_packets(path: Path, packet_size: int, others: dict[int, int]):
                     others[len(payload)] = others.get(len(payload), 0) + 1
                     continue
                 yield stamp, payload
+        except dpkt.NeedData:  # a record header cut short: the end of a capture that was cut
+            f.short = True
         except (ValueError, dpkt.Error, struct.error) as err:
             raise SourceError(f"{path}: the capture cannot be read on ({err})") from None
+        if f.short:
+            import warnings
+
+            from voxtool.errors import VoxtoolWarning
+
+            warnings.warn(f"{path}: the capture is cut short in its last record (a recording that was stopped or a "
+                          "copy cut short): read up to that record, which is left out", VoxtoolWarning, stacklevel=2)
+
+
+class _ShortReads:
+    """A file whose reads note when one returns some but not all of the bytes asked for: dpkt
+    yields a record cut short by the end of the file as if it were whole."""
+
+    def __init__(self, f) -> None:
+        self._f = f
+        self.short = False
+
+    def read(self, size: int = -1) -> bytes:
+        data = self._f.read(size)
+        if 0 < len(data) < size:
+            self.short = True
+        return data
+
+    def __getattr__(self, name):
+        return getattr(self._f, name)
 
 
 def pcap_revolutions(path: Path):
