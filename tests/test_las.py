@@ -110,6 +110,15 @@ def test_what_needs_rays_refuses_a_tile_on_one_line(las_files, tmp_path):
         assert not args[-1].exists()
 
 
+def test_odometry_refuses_a_tile_on_one_line(las_files, tmp_path):
+    """A tile's points are placed already: there are no scans to register (it gave "poses" of a
+    10,659 m voxel registration before)."""
+    code, _, err = cli("odometry", las_files / "simple.las", "-o", tmp_path / "poses.txt", "--no-progress")
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 3 and len(lines) == 1 and "survey tile" in lines[0] and "--poses" in lines[0], err
+    assert not (tmp_path / "poses.txt").exists()
+
+
 def test_a_file_that_is_not_las_fails_on_one_line(tmp_path):
     bad = tmp_path / "bad.laz"
     bad.write_bytes(b"LASF" + bytes(300))

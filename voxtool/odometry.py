@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from voxtool import DISTRIBUTION
-from voxtool.errors import ParameterError
-from voxtool.sources import SourceOptions, open_source
+from voxtool.errors import ParameterError, SourceError
+from voxtool.sources import SourceOptions, detect_kind, open_source
 from voxtool.sources.scan import add_drop_counts
 
 EXTRA = f"pip install '{DISTRIBUTION}[odometry]' (KISS-ICP LiDAR odometry)"
@@ -154,6 +154,10 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
     from voxtool.errors import VoxtoolWarning
     from voxtool.progress import track
 
+    if detect_kind(Path(source)) in ("las", "laz"):
+        raise SourceError(f"{source}: a survey tile's points are already placed in the tile's frame, with no sensor "
+                          "scans to register: odometry estimates a moving sensor's poses from its scans (a tile's rays "
+                          "come from the sensor's trajectory by GPS time: build it with --poses)")
     _import_kiss_icp()  # the extra's one line before any reading
     stream = open_source(source, replace(options, sensor_frame=True, origin=None))
     scans = iter(stream.scans)
@@ -221,7 +225,7 @@ def against_source_poses(source, options: SourceOptions, estimated: np.ndarray, 
     rigid alignment, and the end's drift in % of the path. None where the source has none."""
     import warnings
 
-    from voxtool.errors import SourceError, VoxtoolWarning
+    from voxtool.errors import VoxtoolWarning
 
     try:
         with warnings.catch_warnings():  # what reading its poses says (no poses: run odometry) is not news here
