@@ -16,8 +16,8 @@ def bag_errors() -> tuple:
     from rosbags.rosbag2 import ReaderError as Reader2Error
     from rosbags.serde import SerdeError
 
-    errors = [AnyReaderError, Reader1Error, Reader2Error, SerdeError, ValueError, EOFError, KeyError, IndexError, struct.error,
-              zlib.error, AssertionError, OSError, BagBomb]
+    errors = [AnyReaderError, Reader1Error, Reader2Error, SerdeError, ValueError, EOFError, KeyError, IndexError,
+              struct.error, zlib.error, AssertionError, OSError, BagBomb]
     try:
         import sqlite3
 

@@ -133,11 +133,14 @@ class _LinearBag:
 def _undefined_types_bag(root: Path, patched) -> _IndexedBag | None:
     """A ROS 2 bag whose storage names its types without defining them (sqlite, rosbag2 before
     Iron), read with ROS 2 Humble's definitions: its messages deserialized by that type store
-    directly. AnyReader would first copy and register every type of the store again (0.12 s of a
-    small bag's 0.4 s opening). None where the bag defines its types (AnyReader reads those)."""
+    directly. AnyReader would first copy and register every type of the store again (the VLP-32C
+    packet bag opened in 0.23 s that way, 0.16 s this way). None where the bag defines its types
+    (AnyReader reads those)."""
     from rosbags.interfaces import MessageDefinitionFormat
     from rosbags.rosbag2 import Reader
     from rosbags.typesys import Stores, get_typestore
+
+    from voxtool.sources.velodyne import VELODYNE_SCAN, register_ros2_types
 
     reader = Reader(root)
     reader.open()
@@ -145,8 +148,6 @@ def _undefined_types_bag(root: Path, patched) -> _IndexedBag | None:
         reader.close()
         return None
     store = get_typestore(Stores.ROS2_HUMBLE)
-    from voxtool.sources.velodyne import VELODYNE_SCAN, register_ros2_types
-
     if any(c.msgtype == VELODYNE_SCAN for c in reader.connections):  # the driver packets voxtool decodes
         register_ros2_types(store)
     return _IndexedBag(reader, patched, store.deserialize_cdr)

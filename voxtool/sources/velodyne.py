@@ -116,10 +116,9 @@ def _data_packets(path: Path, packet_size: int, others: dict[int, int]):
                     others[len(payload)] = others.get(len(payload), 0) + 1
                     continue
                 yield stamp, payload
-        except dpkt.NeedData:  # a record header cut short: the end of a capture that was cut
-            f.short = True
         except (ValueError, dpkt.Error, struct.error) as err:
-            raise SourceError(f"{path}: the capture cannot be read on ({err})") from None
+            if not f.short:  # else a record (or its header) cut short by the file's end: what came before is whole
+                raise SourceError(f"{path}: the capture cannot be read on ({err})") from None
         if f.short:
             import warnings
 
