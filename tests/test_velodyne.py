@@ -170,6 +170,21 @@ def test_a_capture_cut_short_reads_up_to_its_cut_record_and_says_so(nebula_bags,
         assert len(got) == len(expected) and all(np.array_equal(a, b) for a, b in zip(got, expected))
 
 
+def test_the_rate_of_a_capture_started_mid_revolution(nebula_bags, tmp_path):
+    """A capture started a quarter turn late (its first 90 of 603 packets left out): its first
+    revolution is cut, and the rate stays the sensor's (over the stamps' span it read 12.5/s)."""
+    whole = _capture(_bag(nebula_bags, "vlp16"), tmp_path / "whole.pcap", "pcap")
+    record = 16 + 14 + 20 + 8 + 1206
+    late = tmp_path / "late.pcap"
+    late.write_bytes(whole.read_bytes()[:24] + whole.read_bytes()[24 + 90 * record:])  # the file header, then packets
+    rates = []
+    for capture in (whole, late):
+        code, text, err = cli("info", capture, "--json")
+        assert code == 0, err
+        rates.append(json.loads(text)["lidar"]["rate_hz"])
+    assert abs(rates[0] - 10.0) < 0.1 and abs(rates[1] - rates[0]) < 0.05 * rates[0], rates
+
+
 def test_a_file_that_is_no_capture_fails_on_one_line(tmp_path):
     bad = tmp_path / "x.pcap"
     bad.write_bytes(b"not a capture at all" * 10)

@@ -108,9 +108,15 @@ def _describe_tile(path: Path, kind: str, options: SourceOptions) -> dict:
 
 
 def _rate_hz(stamps: list[int]) -> float | None:
-    """Scans a second over the stamps' span (a spinning sensor's revolutions); None without one."""
-    span = _span(stamps)
-    return round((len(stamps) - 1) / span["seconds"], 2) if span and span["seconds"] > 0 else None
+    """Scans a second (a spinning sensor's revolutions): one over the median time between scans,
+    so that a revolution cut by where the recording starts or stops does not skew it (a capture
+    started a quarter turn late read 12.5/s for a 10/s sensor over the stamps' span); None without
+    times."""
+    if _span(stamps) is None:
+        return None
+    gaps = np.diff(np.sort(np.asarray(stamps, np.int64)))
+    gap_s = float(np.median(gaps)) * 1e-9 if gaps.size else 0.0
+    return round(1.0 / gap_s, 2) if gap_s > 0 else None
 
 
 def _pcd_fields(path: Path) -> list[str]:
