@@ -28,13 +28,18 @@ def shared_data() -> Path:
 FETCHED = Path(__file__).resolve().parents[1] / ".fetched"
 
 
+def skip_unfetched(why: str, sample: str) -> None:
+    """Skip a test whose public sample is not under .fetched/, naming the command that lays it out."""
+    pytest.skip(f"{why} (python scripts/fetch_samples.py {sample} GIT_DIR)")
+
+
 @pytest.fixture(scope="session")
 def kitti_sample() -> Path:
     """SemanticKITTI frames 0-9 of sequences 00 and 05 (scripts/fetch_samples.py lays them out
     from a public repository; not in git: KITTI's licence is non-commercial)."""
     root = FETCHED / "mini_kitti" / "sequences"
     if not (root / "00" / "velodyne").is_dir():
-        pytest.skip("the KITTI sample is absent (python scripts/fetch_samples.py kitti GIT_DIR)")
+        skip_unfetched("the KITTI sample is absent", "kitti")
     return root
 
 
@@ -43,7 +48,7 @@ def udacity_dump() -> Path:
     """22 real PCD scans from a driving car with no poses (scripts/fetch_samples.py udacity)."""
     root = FETCHED / "udacity_data_1"
     if not any(root.glob("*.pcd")):
-        pytest.skip("the udacity sample is absent (python scripts/fetch_samples.py udacity GIT_DIR)")
+        skip_unfetched("the udacity sample is absent", "udacity")
     return root
 
 
@@ -54,7 +59,7 @@ def nebula_bags() -> Path:
     root = FETCHED / "nebula"
     bags = sorted(p for p in root.glob("*") if (p / "metadata.yaml").is_file())
     if not bags:
-        pytest.skip("the nebula bags are absent (python scripts/fetch_samples.py nebula GIT_DIR)")
+        skip_unfetched("the nebula bags are absent", "nebula")
     return bags
 
 
@@ -63,7 +68,7 @@ def tb3_bag() -> Path:
     """A simulated TurtleBot3's LaserScans (Gazebo), no /tf (scripts/fetch_samples.py tb3)."""
     path = FETCHED / "tb3" / "turtlebot3_scan2.bag"
     if not path.is_file():
-        pytest.skip("the TurtleBot3 bag is absent (python scripts/fetch_samples.py tb3 GIT_DIR)")
+        skip_unfetched("the TurtleBot3 bag is absent", "tb3")
     return path
 
 
@@ -72,7 +77,7 @@ def e57_files() -> Path:
     """pye57's test inputs: a real terrestrial scan and a posed scan (scripts/fetch_samples.py e57)."""
     root = FETCHED / "e57"
     if not (root / "pumpAVisualReferenceImage.e57").is_file():
-        pytest.skip("the E57 samples are absent (python scripts/fetch_samples.py e57 GIT_DIR)")
+        skip_unfetched("the E57 samples are absent", "e57")
     return root
 
 
@@ -81,7 +86,7 @@ def las_files() -> Path:
     """laspy's test tiles: Autzen in feet, simple.las/.laz/.copc.laz (scripts/fetch_samples.py las)."""
     root = FETCHED / "las"
     if not (root / "autzen_trim.laz").is_file():
-        pytest.skip("the LAS samples are absent (python scripts/fetch_samples.py las GIT_DIR)")
+        skip_unfetched("the LAS samples are absent", "las")
     return root
 
 

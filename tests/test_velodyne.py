@@ -10,7 +10,7 @@ import sqlite3
 
 import numpy as np
 import pytest
-from conftest import cli, map_voxels
+from conftest import cli, map_voxels, skip_unfetched
 from scenes import write_pcd
 
 from voxtool.sources import SourceOptions, open_source
@@ -35,7 +35,7 @@ def test_revolutions_match_nebulas_decoder(nebula_bags, sensor):
     bag = _bag(nebula_bags, sensor)
     truth_file = next((bag.parent / "ground_truth" / sensor).glob("*.pcd"), None)
     if truth_file is None:
-        pytest.skip("nebula's decoded clouds are absent (python scripts/fetch_samples.py nebula GIT_DIR)")
+        skip_unfetched("nebula's decoded clouds are absent", "nebula")
     # the message nebula decoded, by its log time (the file's name), read from the bag's database itself
     times = [t for (t,) in sqlite3.connect(next(bag.glob("*.db3"))).execute("SELECT timestamp FROM messages ORDER BY timestamp")]
     scans = list(open_source(bag, SourceOptions(world_frame=FRAMES[sensor])).scans)
@@ -200,7 +200,7 @@ def test_an_ouster_capture_is_one_line_that_says_how_to_convert_it(tmp_path):
 
     captures = sorted((FETCHED / "ouster").glob("*.pcap"))
     if not captures:
-        pytest.skip("the Ouster captures are absent (python scripts/fetch_samples.py ouster GIT_DIR)")
+        skip_unfetched("the Ouster captures are absent", "ouster")
     for capture in captures:
         (tmp_path / "poses.txt").write_text("0 0 0 0 0 0 0 1\n")
         code, _, err = cli("build", capture, "--poses", tmp_path / "poses.txt", "-o", tmp_path / "m.vxm", "--no-progress")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from voxtool.errors import SourceError
 from voxtool.sources.bag_limits import bag_errors, bound_bag_chunks
-from voxtool.sources.ros_msgs import scan_messages, scan_topic
+from voxtool.sources.ros_msgs import VELODYNE, scan_messages, scan_topic
 from voxtool.sources.tf import POSE_TYPES, SensorFrame, SensorPoses, tf_topics, topic_type
 
 
@@ -140,7 +140,7 @@ def _undefined_types_bag(root: Path, patched) -> _IndexedBag | None:
     from rosbags.rosbag2 import Reader
     from rosbags.typesys import Stores, get_typestore
 
-    from voxtool.sources.velodyne import VELODYNE_SCAN, register_ros2_types
+    from voxtool.sources.velodyne import register_ros2_types
 
     reader = Reader(root)
     reader.open()
@@ -148,7 +148,7 @@ def _undefined_types_bag(root: Path, patched) -> _IndexedBag | None:
         reader.close()
         return None
     store = get_typestore(Stores.ROS2_HUMBLE)
-    if any(c.msgtype == VELODYNE_SCAN for c in reader.connections):  # the driver packets voxtool decodes
+    if any(c.msgtype == VELODYNE for c in reader.connections):  # the driver packets voxtool decodes
         register_ros2_types(store)
     return _IndexedBag(reader, patched, store.deserialize_cdr)
 
@@ -171,11 +171,12 @@ def open_bag(path: Path, recover: bool):
             if f.read(len(OLD_MAGIC)) == OLD_MAGIC:
                 return _LinearBag(LinearBag(root))  # raises the one line that says what to do
     patched = None if ros1 else ros2_blanks_filled(root)
+    opened = Path(patched.name) if patched else root
     try:
-        if not ros1 and (bag := _undefined_types_bag(Path(patched.name) if patched else root, patched)) is not None:
+        if not ros1 and (bag := _undefined_types_bag(opened, patched)) is not None:
             return bag
         store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-        reader = AnyReader([Path(patched.name) if patched else root], default_typestore=store)
+        reader = AnyReader([opened], default_typestore=store)
         reader.open()
         return _IndexedBag(reader, patched)
     except FileNotFoundError as err:

@@ -18,7 +18,6 @@ import numpy as np
 from voxtool import DISTRIBUTION
 from voxtool.errors import SourceError
 
-VELODYNE_SCAN = "velodyne_msgs/msg/VelodyneScan"
 EXTRA = f"pip install '{DISTRIBUTION}[velodyne]' (velodyne-decoder)"
 # the ROS 2 definitions (velodyne_msgs): a ROS 2 bag stored in sqlite carries only the type's name
 ROS2_DEFINITIONS = {
