@@ -26,6 +26,20 @@ turtlebot3_world arena) driving: 538 LaserScans on /scan, frame base_scan, no /t
 public repository samialperen/oko_slam (commit 7136b806bfd13fafee9b7cf9995202ba063a0aca, MIT),
 ros_ws/bagfiles/simulation_data/turtlebot3_scan2.bag. A 2D scanner's log that nothing poses.
 
+gazebo: .fetched/gazebo_tb3/<log>/, ROS 2 bags (sqlite3, with metadata.yaml) a robotics course recorded of a
+simulated TurtleBot3 burger (360-beam 3.5 m LDS-01): /scan with /tf, /tf_static, /odom and /clock. Source: the
+public repository josetamaritfernandez/IR2121 (commit 270b77c93ca615264986f5f338ea95e75594426b; it states no
+licence: laid out here for local tests, never redistributed). In Gazebo (driving, standing, sparse) the
+diff-drive plugin publishes odom -> base_footprint from the model's world pose (its odometry_source left at
+the default, WORLD): the simulator's truth.
+  driving: Teleoperation/scripts/rosbag2_2023_10_25-17_10_22.zip, 816 scans over 163 s, 28.4 m along a
+  house's corridor (Gazebo).
+  standing: Teleoperation/scripts/rosbag2_2023_10_25-16_35_56, 114 scans of a robot that stands still (Gazebo).
+  sparse: Worlds/scripts/rosbag2_2023_11_27-18_22_26, 110 scans of a robot standing in a nearly empty world,
+  about 20 returns a scan (Gazebo).
+  webots: Teleoperation/scripts/rosbag2_2023_09_27-16_31_26.zip, 1,189 scans over 258 s in a furnished room
+  (Webots: its odom -> base_link is the wheels' odometry, which drifts).
+
 e57: .fetched/e57/, the E57 files of the public repository davidcaron/pye57 (commit
 b8d20999f3037c580bf1fe1dcb239c50a8f764ad, MIT), its tests' inputs: pumpAVisualReferenceImage.e57 (one real
 terrestrial scan of a pump, 155,201 points with intensity and colour), translationWithoutRotation.e57
@@ -44,6 +58,7 @@ Lambert, WKT and GeoTIFF keys), simple.las and simple.laz (the same 1,065 points
     python scripts/fetch_samples.py udacity GIT_DIR   # a clone or mirror of udacity/SFND_Lidar_Obstacle_Detection
     python scripts/fetch_samples.py nebula GIT_DIR    # a clone or mirror of tier4/nebula
     python scripts/fetch_samples.py tb3 GIT_DIR       # a clone or mirror of samialperen/oko_slam
+    python scripts/fetch_samples.py gazebo GIT_DIR    # a clone or mirror of josetamaritfernandez/IR2121
     python scripts/fetch_samples.py e57 GIT_DIR       # a clone or mirror of davidcaron/pye57
     python scripts/fetch_samples.py ouster GIT_DIR    # a clone or mirror of ouster-lidar/ouster-sdk
     python scripts/fetch_samples.py las GIT_DIR       # a clone or mirror of laspy/laspy
@@ -51,8 +66,10 @@ Lambert, WKT and GeoTIFF keys), simple.las and simple.laz (the same 1,065 points
 
 from __future__ import annotations
 
+import io
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 COMMIT = "2a361538a576d0c675b537ee3bffecda85905609"
@@ -129,6 +146,31 @@ def tb3(git_dir: str) -> None:
     print(f"{out}: turtlebot3_scan2.bag")
 
 
+GAZEBO_COMMIT = "270b77c93ca615264986f5f338ea95e75594426b"
+GAZEBO_LOGS = {"driving": "Teleoperation/scripts/rosbag2_2023_10_25-17_10_22.zip",
+               "standing": "Teleoperation/scripts/rosbag2_2023_10_25-16_35_56",
+               "sparse": "Worlds/scripts/rosbag2_2023_11_27-18_22_26",
+               "webots": "Teleoperation/scripts/rosbag2_2023_09_27-16_31_26.zip"}
+
+
+def gazebo(git_dir: str) -> None:
+    git = _git(git_dir)
+    for log, path in GAZEBO_LOGS.items():
+        out = FETCHED / "gazebo_tb3" / log
+        out.mkdir(parents=True, exist_ok=True)
+        if path.endswith(".zip"):
+            with zipfile.ZipFile(io.BytesIO(git("show", f"{GAZEBO_COMMIT}:{path}"))) as archive:
+                files = {Path(n).name: archive.read(n) for n in archive.namelist()}
+        else:
+            names = git("ls-tree", "--name-only", GAZEBO_COMMIT, f"{path}/").decode().split("\n")
+            files = {Path(n).name: git("show", f"{GAZEBO_COMMIT}:{n}") for n in names if n}
+        for name, data in files.items():
+            if name == "metadata.yaml" or name.endswith(".db3"):  # not sqlite's -shm/-wal side files (empty)
+                (out / name).write_bytes(data)
+    (FETCHED / "gazebo_tb3" / "PROVENANCE.md").write_text(__doc__)
+    print(f"{FETCHED / 'gazebo_tb3'}: {', '.join(GAZEBO_LOGS)}")
+
+
 def _lay_out(git_dir: str, commit: str, folder: str, names, sample: str) -> None:
     """Files `names` of `folder` at `commit` of a repository, copied to .fetched/<sample>/."""
     out = FETCHED / sample
@@ -178,4 +220,4 @@ def kitti(git_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3, "e57": e57, "ouster": ouster, "las": las}[sys.argv[1]](sys.argv[2])
+    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3, "gazebo": gazebo, "e57": e57, "ouster": ouster, "las": las}[sys.argv[1]](sys.argv[2])

@@ -73,6 +73,17 @@ def tb3_bag() -> Path:
 
 
 @pytest.fixture(scope="session")
+def gazebo_bags() -> Path:
+    """A course's ROS 2 bags of a simulated TurtleBot3 with /tf, /odom and /scan: Gazebo's driving,
+    standing and sparse logs, whose odom -> base_footprint is the simulator's truth, and a Webots
+    log whose /tf is wheel odometry (scripts/fetch_samples.py gazebo; not redistributed)."""
+    root = FETCHED / "gazebo_tb3"
+    if not (root / "driving" / "metadata.yaml").is_file():
+        skip_unfetched("the simulated TurtleBot3 bags are absent", "gazebo")
+    return root
+
+
+@pytest.fixture(scope="session")
 def e57_files() -> Path:
     """pye57's test inputs: a real terrestrial scan and a posed scan (scripts/fetch_samples.py e57)."""
     root = FETCHED / "e57"

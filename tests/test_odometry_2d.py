@@ -117,3 +117,74 @@ def test_a_simulated_turtlebot3_log_others_recorded(tb3_bag, tmp_path):
     # the arena's walls from 538 scans: 849 occupied voxels here; the old fixed 100 m range (1 m
     # voxels, every scan flagged as too sparse to register) smeared them over 1,319
     assert built["scans"] == 538 and 300 < built["occupied_voxels"] < 1100
+
+
+def _json(*args):
+    code, text, err = cli(*args, "--json", "--no-progress")
+    assert code == 0, err
+    return json.loads(text), err
+
+
+def test_a_pose_topic_poses_a_gazebo_log_through_its_sensor_mount(gazebo_bags, tmp_path):
+    """A course's Gazebo TurtleBot3 log (public, recorded by others): /odom poses base_footprint and
+    /tf_static mounts the scanner 18.2 cm above it. `info` names the chain, and the map posed by
+    /odom is the map posed by /tf in the odom frame: Gazebo publishes both from one pose (14 of
+    104,780 voxels differ, the two topics sampled at slightly different times). Without the mount
+    every voxel would sit 18 cm low and 3 cm forward, sharing almost none."""
+    bag = gazebo_bags / "driving"
+    code, text, err = cli("info", bag, "--pose-topic", "/odom")
+    assert code == 0, err
+    assert ("'/odom' poses 'base_footprint'; /tf mounts the scan frame 'base_scan' on it at "
+            "[-0.032, 0.000, 0.182] m") in text
+    _json("build", bag, "--pose-topic", "/odom", "-o", tmp_path / "odom.vxm", "--resolution", "0.05")
+    _json("build", bag, "--world-frame", "odom", "-o", tmp_path / "tf.vxm", "--resolution", "0.05")
+    diff, _ = _json("diff", tmp_path / "tf.vxm", tmp_path / "odom.vxm")
+    known = diff["common_known_voxels"]
+    assert known > 100_000 and diff["unchanged"]["occupied"] > 3000
+    assert diff["changed_voxels"] < 0.001 * known, diff
+
+
+def test_odometry_on_a_gazebo_log_against_the_simulator_s_truth(gazebo_bags, tmp_path):
+    """`voxtool odometry` at its defaults on the driving log (816 scans, 28.4 m along a house's
+    corridor by the simulator's /tf): the scanner's 3.5 m range_max, the plane, not flagged; its
+    path within 5 % of the truth's. Its ATE against that truth is 0.38 m here, not the 3 cm #60
+    asks for (docs/sources.md, "Odometry", says what was tried): this guards the figure."""
+    pytest.importorskip("kiss_icp")
+    got, err = _json("odometry", gazebo_bags / "driving", "-o", tmp_path / "p.txt")
+    assert err == "", err
+    assert got["params"]["max_range"] == 3.5 and got["params"]["planar"]
+    assert not got["plausibility"]["suspect"]
+    assert got["against_source_poses"]["ate_rmse_m"] < 0.5, got["against_source_poses"]
+    from voxtool.sources import open_source
+
+    positions = np.array([s.origin for s in open_source(gazebo_bags / "driving").scans], dtype=np.float64)
+    travelled = np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()  # 28.39 m
+    assert travelled > 25.0 and abs(got["path_m"] - travelled) < 0.05 * travelled, (got["path_m"], travelled)
+
+
+def test_odometry_of_gazebo_robots_that_stand_still(gazebo_bags, tmp_path):
+    """Two Gazebo logs of a robot that never moves: in a house (114 scans) the odometry travels 0 m
+    (a standing sensor's jitter is not a path) within 1 cm of the truth; in a nearly empty world
+    (110 scans of about 20 returns) it is flagged as having too little to register."""
+    pytest.importorskip("kiss_icp")
+    got, err = _json("odometry", gazebo_bags / "standing", "-o", tmp_path / "p.txt")
+    assert err == "" and got["scans"] == 114 and got["path_m"] == 0.0
+    assert got["against_source_poses"]["ate_rmse_m"] < 0.01 and not got["plausibility"]["suspect"]
+    got, err = _json("odometry", gazebo_bags / "sparse", "-o", tmp_path / "p.txt")
+    assert got["plausibility"]["suspect"] and got["plausibility"]["sparse_scans"] == 110
+    assert "may have diverged: 110 scans with fewer than 30 points to register" in err
+
+
+def test_odometry_maps_a_webots_room_crisper_than_its_wheel_odometry(gazebo_bags, tmp_path):
+    """A Webots TurtleBot3 log (1,189 scans, 258 s in a furnished room) whose /tf is the wheels'
+    odometry: its map smears the room's walls as the wheels' heading drifts. The map from
+    `voxtool odometry`'s poses holds the same walls in a third fewer occupied voxels (1,281 against
+    1,942 at 5 cm here)."""
+    pytest.importorskip("kiss_icp")
+    bag = gazebo_bags / "webots"
+    got, err = _json("odometry", bag, "-o", tmp_path / "p.txt")
+    assert got["scans"] == 1189 and not got["plausibility"]["suspect"], err
+    by_wheels, _ = _json("build", bag, "-o", tmp_path / "wheels.vxm", "--resolution", "0.05")
+    by_odometry, _ = _json("build", bag, "--poses", tmp_path / "p.txt", "-o", tmp_path / "odo.vxm", "--resolution", "0.05")
+    assert by_odometry["scans"] == by_wheels["scans"] == 1189
+    assert by_odometry["occupied_voxels"] < 0.75 * by_wheels["occupied_voxels"], (by_odometry, by_wheels)

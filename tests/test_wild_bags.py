@@ -368,6 +368,23 @@ def test_an_empty_bag_is_one_line(tmp_path):
     assert "no PointCloud2 or LaserScan topic to build from (its topics: none)" in _one_error_line(err)
 
 
+@pytest.mark.parametrize("command", ["build", "odometry"])
+def test_a_scan_topic_without_messages_is_one_line(tmp_path, command):
+    """A recording whose /scan connection never got a message (a course's ROS 2 bag has one) used to
+    build an empty map with exit 0."""
+    from rosbags.rosbag1 import Writer
+
+    path = tmp_path / "silent.bag"
+    with Writer(path) as writer:
+        writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=_store("ros1"))
+    out = tmp_path / ("out.vxm" if command == "build" else "poses.txt")
+    code, _, err = cli(command, path, "-o", out, "--no-progress")
+    assert code == 3 and not out.exists()
+    assert "its scan topic '/scan' holds no messages: nothing to build from" in _one_error_line(err)
+    code, text, _ = cli("info", path)
+    assert code == 0 and "/scan (LaserScan, no messages)" in text  # was "frame 'None'"
+
+
 @pytest.mark.parametrize("keep", [0.2, 0.35, 0.7, 0.97])
 def test_a_truncated_recording_builds_what_was_recorded_with_skip(tmp_path, scans, keep):
     """A recording killed (or a download cut) at `keep` of its bytes: rosbags cannot open it (its

@@ -49,8 +49,8 @@ def _rows(f: dict) -> list[tuple[str, str]]:
         rows.append(("scans", f"none to build from: {f.get('why', '')}"))
         return rows
     if f.get("scan_topic"):
-        rows.append(("scan topic", f"{f['scan_topic']} ({f['scan_type'].rsplit('/', 1)[-1]}, frame "
-                                   f"'{f.get('scan_frame')}')"))
+        frame = "no messages" if f.get("scan_frame") is None else f"frame '{f['scan_frame']}'"
+        rows.append(("scan topic", f"{f['scan_topic']} ({f['scan_type'].rsplit('/', 1)[-1]}, {frame})"))
     rows.append(("scans", f"{f['scans']:,}"))
     span = f.get("time_span")
     rows.append(("time span", f"{span['seconds']:.3f} s" if span else "no times"))

@@ -402,6 +402,9 @@ def _log_stream(kind: str, path: Path, src, options: SourceOptions) -> ScanStrea
         lost = src.lost() if hasattr(src, "lost") else ""
         if lost and not read:
             raise SourceError(f"{path}: no scan can be read: {lost}")
+        if not read and not bad.skipped and not lost:  # an empty map with exit 0 would pass for a map
+            where = "" if options.start == 0 and options.stop is None else " in the --start/--stop range"
+            raise SourceError(f"{path}: its scan topic '{src.topic}' holds no messages{where}: nothing to build from")
         if lost:  # a truncated log read as far as it goes (--bad-scans skip)
             import warnings
 
