@@ -39,6 +39,10 @@ the default, WORLD): the simulator's truth.
   about 20 returns a scan (Gazebo).
   webots: Teleoperation/scripts/rosbag2_2023_09_27-16_31_26.zip, 1,189 scans over 258 s in a furnished room
   (Webots: its odom -> base_link is the wheels' odometry, which drifts).
+gazebo-hall: .fetched/gazebo_tb3/hall/, a ROS 2 bag of the same course a year later, from the public
+repository Danivfr/IR2121 (commit 2e8a9c18acd22d6e548bfbeaf6b4e56df95f6afd, Worlds/rosbag2_2025_10_06-18_47_53.zip;
+no licence stated: local tests only): a Gazebo TurtleBot3 driving 42 m round a 12 m x 15 m hall, 1,046
+scans, with the simulator's /tf. With a 3.5 m scanner most of the hall is one wall or none in range.
 
 e57: .fetched/e57/, the E57 files of the public repository davidcaron/pye57 (commit
 b8d20999f3037c580bf1fe1dcb239c50a8f764ad, MIT), its tests' inputs: pumpAVisualReferenceImage.e57 (one real
@@ -59,6 +63,7 @@ Lambert, WKT and GeoTIFF keys), simple.las and simple.laz (the same 1,065 points
     python scripts/fetch_samples.py nebula GIT_DIR    # a clone or mirror of tier4/nebula
     python scripts/fetch_samples.py tb3 GIT_DIR       # a clone or mirror of samialperen/oko_slam
     python scripts/fetch_samples.py gazebo GIT_DIR    # a clone or mirror of josetamaritfernandez/IR2121
+    python scripts/fetch_samples.py gazebo-hall GIT_DIR   # a clone or mirror of Danivfr/IR2121
     python scripts/fetch_samples.py e57 GIT_DIR       # a clone or mirror of davidcaron/pye57
     python scripts/fetch_samples.py ouster GIT_DIR    # a clone or mirror of ouster-lidar/ouster-sdk
     python scripts/fetch_samples.py las GIT_DIR       # a clone or mirror of laspy/laspy
@@ -153,22 +158,36 @@ GAZEBO_LOGS = {"driving": "Teleoperation/scripts/rosbag2_2023_10_25-17_10_22.zip
                "webots": "Teleoperation/scripts/rosbag2_2023_09_27-16_31_26.zip"}
 
 
-def gazebo(git_dir: str) -> None:
+HALL_COMMIT = "2e8a9c18acd22d6e548bfbeaf6b4e56df95f6afd"
+HALL_LOGS = {"hall": "Worlds/rosbag2_2025_10_06-18_47_53.zip"}
+
+
+def _course_logs(git_dir: str, commit: str, logs: dict[str, str]) -> None:
+    """ROS 2 bags of a course's repository, each a folder or a zip of one, laid out in
+    .fetched/gazebo_tb3/<log>/ (metadata.yaml and the .db3: not sqlite's empty -shm/-wal files)."""
     git = _git(git_dir)
-    for log, path in GAZEBO_LOGS.items():
+    for log, path in logs.items():
         out = FETCHED / "gazebo_tb3" / log
         out.mkdir(parents=True, exist_ok=True)
         if path.endswith(".zip"):
-            with zipfile.ZipFile(io.BytesIO(git("show", f"{GAZEBO_COMMIT}:{path}"))) as archive:
+            with zipfile.ZipFile(io.BytesIO(git("show", f"{commit}:{path}"))) as archive:
                 files = {Path(n).name: archive.read(n) for n in archive.namelist()}
         else:
-            names = git("ls-tree", "--name-only", GAZEBO_COMMIT, f"{path}/").decode().split("\n")
-            files = {Path(n).name: git("show", f"{GAZEBO_COMMIT}:{n}") for n in names if n}
+            names = git("ls-tree", "--name-only", commit, f"{path}/").decode().split("\n")
+            files = {Path(n).name: git("show", f"{commit}:{n}") for n in names if n}
         for name, data in files.items():
-            if name == "metadata.yaml" or name.endswith(".db3"):  # not sqlite's -shm/-wal side files (empty)
+            if name == "metadata.yaml" or name.endswith(".db3"):
                 (out / name).write_bytes(data)
     (FETCHED / "gazebo_tb3" / "PROVENANCE.md").write_text(__doc__)
-    print(f"{FETCHED / 'gazebo_tb3'}: {', '.join(GAZEBO_LOGS)}")
+    print(f"{FETCHED / 'gazebo_tb3'}: {', '.join(logs)}")
+
+
+def gazebo(git_dir: str) -> None:
+    _course_logs(git_dir, GAZEBO_COMMIT, GAZEBO_LOGS)
+
+
+def gazebo_hall(git_dir: str) -> None:
+    _course_logs(git_dir, HALL_COMMIT, HALL_LOGS)
 
 
 def _lay_out(git_dir: str, commit: str, folder: str, names, sample: str) -> None:
@@ -220,4 +239,4 @@ def kitti(git_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3, "gazebo": gazebo, "e57": e57, "ouster": ouster, "las": las}[sys.argv[1]](sys.argv[2])
+    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3, "gazebo": gazebo, "gazebo-hall": gazebo_hall, "e57": e57, "ouster": ouster, "las": las}[sys.argv[1]](sys.argv[2])

@@ -28,6 +28,11 @@ EXTRA = f"pip install '{DISTRIBUTION}[odometry]' (KISS-ICP LiDAR odometry)"
 PEEK_SCANS = 10  # scans read before registering: what the sensor's range and kind are
 MIN_POINTS = 30  # a scan with fewer points left to register than this is degenerate (a wall, no returns)
 SPEED_LIMIT = {True: 5.0, False: 60.0}  # m/s: faster is implausible for a planar (indoor) scanner / a 3D one
+# a planar scan whose surface normals put less than this share of their weight in its least
+# constrained direction sees a single wall or a featureless corridor: motion along it is unmeasured
+# (two parallel walls with 1 cm noise: 0.04; a room's scans: 0.2-0.4)
+MIN_SUPPORT = 0.05
+DEGENERATE_SHARE = 0.05  # a run with this share of such scans is flagged (0-4 % in the well-registered logs measured)
 
 
 @dataclass(frozen=True)
@@ -108,6 +113,35 @@ def sensor_range(scans: list) -> float:
     return max(1.0, float(np.ceil(np.percentile(ranges, 99.5) * 2.0) / 2.0))
 
 
+def weak_direction_support(points: np.ndarray, min_range: float, max_range: float) -> float:
+    """How well a planar scan (sensor frame) fixes motion in its least constrained direction: the
+    share of its surface normals' weight there, the smaller eigenvalue of the sum of n n^T over its
+    points' normals over their sum (0 along a straight wall, 0.5 where walls face every way). A
+    normal comes from a point's neighbours in bearing, two either side on the same surface (no
+    range jump), where they lie on a line."""
+    p = points[:, :2].astype(np.float64)
+    r = np.hypot(p[:, 0], p[:, 1])
+    keep = (r < max_range) & (r > min_range)
+    p, r = p[keep], r[keep]
+    n = len(p)
+    if n < 5:
+        return 0.0
+    order = np.argsort(np.arctan2(p[:, 1], p[:, 0]))
+    p, r = p[order], r[order]
+    around = (np.arange(n)[:, None] + np.arange(-2, 3)[None, :]) % n  # a full turn wraps round
+    same = np.abs(r[around] - r[:, None]) < 0.1 * r[:, None] + 0.05
+    count = same.sum(axis=1)
+    mean = (p[around] * same[..., None]).sum(axis=1) / count[:, None]
+    offsets = (p[around] - mean[:, None, :]) * same[..., None]
+    spread, axes = np.linalg.eigh(np.einsum("nki,nkj->nij", offsets, offsets))
+    line = (count >= 4) & (spread[:, 0] < 0.1 * spread[:, 1])
+    normals = axes[line, :, 0]
+    if not len(normals):
+        return 0.0
+    weak, strong = np.linalg.eigvalsh(normals.T @ normals)
+    return float(weak / (weak + strong))
+
+
 def path_length(positions: np.ndarray, step: float) -> float:
     """The distance travelled, counted from one kept position to the next once they are `step`
     apart: a standing sensor's jitter (millimetres a scan, hundreds of scans) adds nothing."""
@@ -121,10 +155,11 @@ def path_length(positions: np.ndarray, step: float) -> float:
 
 
 def plausibility(positions: np.ndarray, stamps_ns: np.ndarray, registered: np.ndarray, planar: bool,
-                 max_range: float) -> dict:
+                 max_range: float, support: np.ndarray | None = None) -> dict:
     """What says a run diverged or had too little to go on: steps faster than a sensor of its
-    kind moves (or, without times, longer than a quarter of its range), and scans with fewer
-    than MIN_POINTS points to register."""
+    kind moves (or, without times, longer than a quarter of its range), scans with fewer than
+    MIN_POINTS points to register, and (planar runs, `support` from weak_direction_support) a
+    DEGENERATE_SHARE of scans that cannot fix motion along one direction."""
     steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
     dt = np.diff(stamps_ns.astype(np.float64)) / 1e9
     timed = bool(len(dt)) and bool(np.all(dt > 0))
@@ -137,11 +172,16 @@ def plausibility(positions: np.ndarray, stamps_ns: np.ndarray, registered: np.nd
         bad = np.flatnonzero(steps > max_range / 4.0)
         worst = float(steps.max()) if len(steps) else 0.0
     sparse = np.flatnonzero(registered < MIN_POINTS)
+    # a scan too sparse to register is counted as sparse, not again as degenerate
+    weak = np.flatnonzero((support < MIN_SUPPORT) & (registered >= MIN_POINTS)) if support is not None else np.zeros(0, int)
+    degenerate = len(registered) > 0 and weak.size >= DEGENERATE_SHARE * len(registered)
     return {"implausible_steps": int(bad.size), "first_implausible_scan": int(bad[0] + 1) if bad.size else None,
             "max_speed_m_s" if timed else "max_step_m": round(worst, 3),
             "limit": f"{limit} m/s" if timed else f"{max_range / 4.0:g} m a scan",
             "sparse_scans": int(sparse.size), "first_sparse_scan": int(sparse[0]) if sparse.size else None,
-            "suspect": bool(bad.size or sparse.size)}
+            "one_direction_scans": int(weak.size) if support is not None else None,
+            "first_one_direction_scan": int(weak[0]) if weak.size else None,
+            "suspect": bool(bad.size or sparse.size or degenerate)}
 
 
 def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: OdometryParams,
@@ -167,7 +207,7 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
         s.points.shape[0] == 0 or not np.any(s.points[:, 2]) for s in first)
     voxel_size = params.voxel_size or max_range / 100.0
     odometry = _kiss_icp(max_range, params.min_range, voxel_size, planar)
-    poses, stamps, points, dropped, registered = [], [], 0, {}, []
+    poses, stamps, points, dropped, registered, support = [], [], 0, {}, [], []
     t0 = time.perf_counter()
     for scan in track(chain(first, scans), stream.count, "odometry", progress, unit="scan"):
         cloud = scan.points.astype(np.float64)
@@ -175,6 +215,8 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
         poses.append(odometry.last_pose.copy())
         stamps.append(scan.stamp_ns)
         registered.append(len(used))
+        if planar:
+            support.append(weak_direction_support(scan.points, params.min_range, max_range))
         points += cloud.shape[0]
         add_drop_counts(dropped, scan)
     seconds = time.perf_counter() - t0
@@ -187,7 +229,8 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
                              "a pose file needs a pose for every scan")
     positions = np.array([m[:3, 3] for m in poses])
     path_m = path_length(positions, voxel_size / 2.0)
-    check = plausibility(positions, np.array(stamps, dtype=np.int64), np.array(registered), planar, max_range)
+    check = plausibility(positions, np.array(stamps, dtype=np.int64), np.array(registered), planar, max_range,
+                         np.array(support) if planar else None)
     if check["suspect"]:
         said = []
         if check["implausible_steps"]:
@@ -197,6 +240,11 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
         if check["sparse_scans"]:
             said.append(f"{check['sparse_scans']} scans with fewer than {MIN_POINTS} points to register (the first: "
                         f"scan {check['first_sparse_scan']})")
+        weak = check["one_direction_scans"] or 0
+        if weak >= DEGENERATE_SHARE * len(poses):
+            said.append(f"{weak} scans ({100 * weak / len(poses):.0f} %) fix the motion in one direction only, a single "
+                        "wall or a featureless corridor in range: motion along it is not measured (the first: scan "
+                        f"{check['first_one_direction_scan']})")
         warnings.warn(f"{source}: the odometry may have diverged: {'; '.join(said)}; check the poses (build a map "
                       "and look) before trusting them", VoxtoolWarning, stacklevel=2)
     against = against_source_poses(source, options, positions, path_m)

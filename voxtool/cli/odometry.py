@@ -48,7 +48,8 @@ def odometry(source, sample, output, max_range, planar, min_range, voxel_size, t
       voxtool odometry robot.bag -o poses.txt    a 2D LaserScan log: its range_max, in the plane
 
     A run that looks diverged (steps faster than the sensor moves, scans with almost nothing to
-    register) says so on one warning line and in --json's plausibility."""
+    register, 2D scans that see one wall or a featureless corridor and so cannot measure motion
+    along it) says so on one warning line and in --json's plausibility."""
     from voxtool.odometry import OdometryParams, estimate_poses, write_pose_file
     from voxtool.sources import SourceOptions
 
