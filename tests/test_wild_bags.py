@@ -592,3 +592,26 @@ def test_johnny5_odometry_at_its_defaults_maps_the_walls_gmapping_has(shared_dat
     build(open_source(bag, SourceOptions(poses=str(tmp_path / "poses.txt"))), m, progress=False)
     walls, share = _gmapping_share(folder, m)
     assert walls > 500 and share >= 0.90, share
+
+
+COURSE_LOGS = {"driving": (816, "base_scan", "map"), "standing": (114, "base_scan", "odom"),
+               "sparse": (110, "base_scan", "odom"), "webots": (1189, "LDS-01", "odom"),
+               "hall": (1046, "base_scan", "map")}
+
+
+def test_a_course_s_simulated_logs_are_described_and_build(gazebo_bags, tmp_path):
+    """The corpus grown by a course's simulated TurtleBot3 logs (ROS 2 sqlite bags with /clock,
+    Gazebo's and Webots' /tf trees, scripts/fetch_samples.py gazebo and gazebo-hall): `info`
+    names each one's scans, scan frame and the /tf root that poses them; the short ones build
+    every scan with no warning."""
+    for log, (scans, frame, root) in COURSE_LOGS.items():
+        if not (gazebo_bags / log / "metadata.yaml").is_file():
+            continue  # the hall comes from a second repository
+        code, text, err = cli("info", gazebo_bags / log, "--json")
+        assert code == 0 and err == "", (log, err)
+        got = json.loads(text)
+        assert (got["scans"], got["scan_frame"]) == (scans, frame), log
+        assert got["pose_source"]["by"] == f"/tf: scan frame '{frame}' in world frame '{root}'", log
+        if scans < 200:
+            code, report, err, out = _build(tmp_path, gazebo_bags / log)
+            assert code == 0 and err == "" and report["scans"] == scans and report["occupied_voxels"] > 0, (log, err)
