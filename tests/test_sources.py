@@ -250,12 +250,12 @@ def test_rosbag2_written_mcap_decodes(shared_data):
 
 
 def test_tf_is_interpolated_at_the_cloud_stamp():
-    from voxtool.geometry import Pose, matrix_to_quat
+    from voxtool.geometry import matrix_to_quat
     from voxtool.sources.tf import STAMP_TOLERANCE_NS, StampedPoses
 
-    series = StampedPoses()
-    series.add(1_000, Pose.from_quat((0, 0, 0), 1, 0, 0, 0))
-    series.add(3_000, Pose.from_quat((2, 0, 0), np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)))  # yaw 90 deg
+    series = StampedPoses()  # (x, y, z, qw, qx, qy, qz) at each stamp
+    series.add(1_000, (0, 0, 0, 1, 0, 0, 0))
+    series.add(3_000, (2, 0, 0, np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)))  # yaw 90 deg
     mid = series.at(2_000)
     assert np.allclose(mid.translation, [1, 0, 0])
     q = matrix_to_quat(mid.rotation)

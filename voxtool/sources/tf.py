@@ -79,28 +79,33 @@ def header_stamp(header) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
-def _pose_of(translation, rotation) -> Pose:
-    return Pose.from_quat((translation.x, translation.y, translation.z), rotation.w, rotation.x, rotation.y, rotation.z)
+def _pose_of(translation, rotation) -> tuple:
+    """A Transform's or Pose's fields as the 7 numbers StampedPoses keeps (x, y, z, qw, qx, qy, qz)."""
+    return (translation.x, translation.y, translation.z, rotation.w, rotation.x, rotation.y, rotation.z)
 
 
 class StampedPoses:
-    """Time series of one transform, interpolated (linear + slerp) at a query stamp."""
+    """Time series of one transform, interpolated (linear + slerp) at a query stamp. It keeps each
+    transform's 7 numbers and makes a Pose of the ones a lookup reads: a robot's /tf holds tens of
+    thousands of transforms (wheels, joints) of which the scans read a few thousand."""
 
     def __init__(self) -> None:
         self.stamps: list[int] = []
-        self.poses: list[Pose] = []
+        self.values: list[tuple] = []  # (x, y, z, qw, qx, qy, qz) of each stamp
         self.static = False
         self._sorted: np.ndarray | None = None  # the stamps as an array, made on the first lookup
         self._in_order = True  # stamps ascending, none repeated
+        self._made: dict[int, Pose] = {}  # Poses made, by index into the ordered series
 
-    def add(self, stamp: int, pose: Pose) -> None:
+    def add(self, stamp: int, values: tuple) -> None:
         """Any stamp, in any order (as tf2's buffer takes them: several publishers of one edge,
         a late message): the series is put in stamp order on the next lookup."""
         if self.stamps and stamp <= self.stamps[-1]:
             self._in_order = False
         self.stamps.append(stamp)
-        self.poses.append(pose)
+        self.values.append(values)
         self._sorted = None
+        self._made = {}
 
     def _order(self) -> None:
         """Sort by stamp; of repeated stamps the pose added last stays (the stable sort puts it last)."""
@@ -108,12 +113,19 @@ class StampedPoses:
         stamps = [self.stamps[i] for i in order]
         last = [k for k in range(len(stamps)) if k + 1 == len(stamps) or stamps[k + 1] != stamps[k]]
         self.stamps = [stamps[k] for k in last]
-        self.poses = [self.poses[order[k]] for k in last]
+        self.values = [self.values[order[k]] for k in last]
         self._in_order = True
 
+    def _pose(self, i: int) -> Pose:
+        pose = self._made.get(i)
+        if pose is None:
+            x, y, z, qw, qx, qy, qz = self.values[i]
+            pose = self._made[i] = Pose.from_quat((x, y, z), qw, qx, qy, qz)
+        return pose
+
     def at(self, stamp: int) -> Pose | None:
-        if self.static:
-            return self.poses[-1]
+        if self.static:  # the last one read, as tf2's static buffer keeps it
+            return self._pose(len(self.values) - 1)
         if not self._in_order:
             self._order()
         s = self.stamps
@@ -121,12 +133,12 @@ class StampedPoses:
             self._sorted = np.asarray(s, dtype=np.int64)
         i = int(np.searchsorted(self._sorted, stamp))
         if i < len(s) and s[i] == stamp:
-            return self.poses[i]
+            return self._pose(i)
         if i == 0:
-            return self.poses[0] if s[0] - stamp <= STAMP_TOLERANCE_NS else None
+            return self._pose(0) if s[0] - stamp <= STAMP_TOLERANCE_NS else None
         if i == len(s):
-            return self.poses[-1] if stamp - s[-1] <= STAMP_TOLERANCE_NS else None
-        return interpolate_pose(stamp, s[i - 1], self.poses[i - 1], s[i], self.poses[i])
+            return self._pose(i - 1) if stamp - s[-1] <= STAMP_TOLERANCE_NS else None
+        return interpolate_pose(stamp, s[i - 1], self._pose(i - 1), s[i], self._pose(i))
 
 
 class SensorFrame:
