@@ -220,16 +220,16 @@ def test_odometry_of_gazebo_robots_that_stand_still(gazebo_bags, tmp_path):
 def test_odometry_maps_a_webots_room_crisper_than_its_wheel_odometry(gazebo_bags, tmp_path):
     """A Webots TurtleBot3 log (1,189 scans, 258 s in a furnished room) whose /tf is the wheels'
     odometry: its map smears the room's walls as the wheels' heading drifts. The map from
-    `voxtool odometry`'s poses holds the same walls in a third fewer occupied voxels (1,281 against
-    1,942 at 5 cm here)."""
+    `voxtool odometry`'s poses holds the same walls in half the occupied voxels (525 against 1,113
+    at 0.1 m here; 1,281 against 1,942 at 5 cm)."""
     pytest.importorskip("kiss_icp")
     bag = gazebo_bags / "webots"
     got, err = _json("odometry", bag, "-o", tmp_path / "p.txt")
     assert got["scans"] == 1189 and not got["plausibility"]["suspect"], err
-    by_wheels, _ = _json("build", bag, "-o", tmp_path / "wheels.vxm", "--resolution", "0.05")
-    by_odometry, _ = _json("build", bag, "--poses", tmp_path / "p.txt", "-o", tmp_path / "odo.vxm", "--resolution", "0.05")
+    by_wheels, _ = _json("build", bag, "-o", tmp_path / "wheels.vxm", "--resolution", "0.1")
+    by_odometry, _ = _json("build", bag, "--poses", tmp_path / "p.txt", "-o", tmp_path / "odo.vxm", "--resolution", "0.1")
     assert by_odometry["scans"] == by_wheels["scans"] == 1189
-    assert by_odometry["occupied_voxels"] < 0.75 * by_wheels["occupied_voxels"], (by_odometry, by_wheels)
+    assert by_odometry["occupied_voxels"] < 0.6 * by_wheels["occupied_voxels"], (by_odometry, by_wheels)
 
 
 def test_odometry_round_a_gazebo_hall_is_flagged_where_it_cannot_see(gazebo_bags, tmp_path):
