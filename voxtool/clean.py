@@ -72,6 +72,7 @@ SPLIT_SCAN = 10_000  # points: a smaller scan's rays are cast on one thread
 GROUND_COLUMN_M = 0.2  # the ground's columns (metres): coarser than 0.1 m voxels costs 4x less, 2 cm on a 10 % slope
 GROUND_CELLS = 1 << 20  # at most this many ground columns: coarser over a larger area (its cost: 0.1 s a million)
 GROUP_STEPS = 4  # voxels a group reaches beyond its void points (a mover's unseen bottom and edges)
+LEVEL_TOLERANCE = 1e-3  # metres: a scan whose points all lie this close to its sensor's height is a level 2D scan
 
 
 class BrickSet:
@@ -406,13 +407,23 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     void_map = VoidMap(params, threads)
     t0 = time.perf_counter()
     scans = []
+    level = True  # every scan a level 2D one: its points at its sensor's height
     for scan in track(stream.scans, stream.count, "read", progress, unit="scan"):
         if scan.hits_only:
             raise ParameterError(f"{scan.source}: has no sensor origin: clean judges points by the rays that "
                                  "crossed them, and it has none")
         void_map.points.add_codes(point_codes(scan.points, params.resolution, what=f"{scan.source}: point"))
+        level = level and (scan.points.shape[0] == 0
+                           or float(np.abs(scan.points[:, 2] - scan.origin[2]).max()) <= LEVEL_TOLERANCE)
         scans.append(scan)
     t_read = time.perf_counter() - t0
+    planar = level and bool(scans)
+    if planar:
+        # a 2D scanner's rays stay in its layer: the pose-error cube would ask the layers above
+        # and below to be crossed, which never happens, and the scan plane is no ground
+        from voxtool.kernels.clean import cube_brick_table
+
+        void_map.cube = cube_brick_table(params.pose_error, True)
     report = build(dataclasses.replace(stream, scans=iter(scans)), void_map, progress)
     clouds = [scan.points for scan in scans]  # as read: build casts each scan unchanged
     truths = [scan.extra.get("truth") for scan in scans]  # ground truth per point (--truth), where given
@@ -422,7 +433,7 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     starts = np.zeros(len(clouds) + 1, dtype=np.int64)
     np.cumsum([c.shape[0] for c in clouds], out=starts[1:])
     del clouds  # the scans' own arrays: every point was held twice from here on
-    judge_ground = params.ground_band >= 0 and points.shape[0] > 0
+    judge_ground = params.ground_band >= 0 and points.shape[0] > 0 and not planar
     ground = ground_points(points, params.resolution, params.ground_band) if judge_ground else None
     dynamic = dynamic_points(void_map, points, starts, ground)
     t_classify = time.perf_counter() - t0
@@ -432,7 +443,7 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
         "points_read": built["points"], "points_dropped": built["points_dropped"],
         "points_in": int(points.shape[0]), "points_kept": int(points.shape[0] - dynamic.sum()),
         "points_removed": int(dynamic.sum()), "void_map_bytes": void_map.used_bytes(),
-        "ground_points": int(ground.sum()) if ground is not None else None,
+        "ground_points": int(ground.sum()) if ground is not None else None, "planar": planar,
         "threads": void_map.threads, "params": asdict(params),
         "timings_s": {"jit": built["timings_s"]["jit"], "read": round(t_read + built["timings_s"]["read"], 6),
                       "raycast": built["timings_s"]["raycast"], "void_update": built["timings_s"]["update"],

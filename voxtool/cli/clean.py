@@ -109,7 +109,8 @@ def clean(source, sample, output, labels, dynamic, png, view, above_ground, reso
         ("points", f"{result['points_in']:,} judged ({result['points_dropped']:,} dropped on reading)"),
         ("kept (static)", f"{result['points_kept']:,}"),
         ("removed (dynamic)", f"{removed:,} ({share:.2%})"),
-        ("ground", f"{result['ground_points']:,} points within {ground_band} m of the ground: evidence of no mover"
+        ("ground", "none in 2D scans: judged in the scan plane, the pose error a square in it" if result["planar"]
+                   else f"{result['ground_points']:,} points within {ground_band} m of the ground: evidence of no mover"
                    if ground_band >= 0 else "judged as any other surface (--ground-band < 0)"),
         ("maps", f"{result['void_map_bytes'] / 2**20:.1f} MiB at {resolution} m (crossed, void, holding points)"),
         ("time", f"{t['scans_total']:.3f} s for the scans on {result['threads']} threads (ray casting "

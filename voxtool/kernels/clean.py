@@ -257,19 +257,21 @@ def bricks_hold(keys, bits, codes, out):
 
 
 @njit(cache=True, nogil=True)
-def cube_brick_table(radius):
+def cube_brick_table(radius, flat=False):
     """For each in-brick voxel p (Morton index) and each voxel of the (2r+1)^3 cube around it
     (itself excluded; the 6 face neighbours first, the likeliest to fail), where that voxel
     lies: nb * 512 + its in-brick index, nb = (dx + 1) + 3 (dy + 1) + 9 (dz + 1) for the brick
-    dx, dy, dz away (radius <= BALL_TABLE_RADIUS)."""
+    dx, dy, dz away (radius <= BALL_TABLE_RADIUS). flat: the (2r+1)^2 square in p's own layer
+    (dz = 0), for level 2D scans, whose rays never cross the layers above and below."""
     r = int(radius)
-    n = (2 * r + 1) ** 3 - 1
+    rz = 0 if flat else r
+    n = (2 * r + 1) ** 2 * (2 * rz + 1) - 1
     offsets = np.empty((n, 3), dtype=np.int64)
     k = 0
     for dist in range(1, 3 * r * r + 1):  # by squared distance: faces, edges, corners, ...
         for dx in range(-r, r + 1):
             for dy in range(-r, r + 1):
-                for dz in range(-r, r + 1):
+                for dz in range(-rz, rz + 1):
                     if dx * dx + dy * dy + dz * dz == dist:
                         offsets[k, 0], offsets[k, 1], offsets[k, 2] = dx, dy, dz
                         k += 1
