@@ -3,6 +3,8 @@ what stands on it, against a generated sloped terrain whose heights are known (b
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from conftest import cli
@@ -291,3 +293,24 @@ def test_clean_s_ground_is_the_terrain_and_not_what_stands_on_it():
         clean.GROUND_CHUNK = saved
     keys = np.floor(points[:, :2].astype(np.float64) / 0.1).astype(np.int64) + 32768  # as OctoMap keys them
     np.testing.assert_array_equal(clean.point_columns(points, 0.1), keys[:, 0] << 16 | keys[:, 1])
+
+
+def test_above_ground_refuses_a_2d_scanner_s_map(tmp_path):
+    """A level 2D scanner's map (LaserScans round a room, posed by their true path) holds its walls
+    in one or two voxel layers: the ground model took them for the floor, and the grid lost
+    them (315 occupied cells of 437 on a Gazebo log). One line, exit 2, nothing written; the plain
+    grid keeps every wall."""
+    from test_odometry_2d import loop, write_scans
+
+    truth = loop(100)
+    bag, poses = tmp_path / "room.bag", tmp_path / "poses.txt"
+    write_scans(bag, truth)
+    poses.write_text("".join(f"{1 + i / 10:.1f} {x:.6f} {y:.6f} 0.2 0 0 {np.sin(a / 2):.9f} {np.cos(a / 2):.9f}\n"
+                             for i, (x, y, a) in enumerate(truth)))
+    code, _, err = cli("build", bag, "--poses", poses, "-o", tmp_path / "m.vxm", "--resolution", "0.05", "--no-progress")
+    assert code == 0, err
+    code, _, err = cli("export", tmp_path / "m.vxm", "-o", tmp_path / "g.pgm", "--above-ground", "0.1,0.5")
+    assert code == 2 and not (tmp_path / "g.pgm").exists() and not (tmp_path / "g.yaml").exists()
+    assert "m.vxm: --above-ground: its occupied voxels lie in 1 layer(s) of 0.05 m" in err and len(err.splitlines()) == 1
+    code, text, err = cli("export", tmp_path / "m.vxm", "-o", tmp_path / "g.pgm", "--json")
+    assert code == 0 and json.loads(text)["occupied_cells"] > 300, err

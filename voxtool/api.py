@@ -459,6 +459,10 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
                 extra["below_roof"] = False  # the box chose the heights
             if kind == ".png" and len(leaves) == 0:
                 raise ParameterError(f"{path}: no voxel of the map lies in --crop {','.join(f'{v:g}' for v in crop)}")
+        if above_ground is not None:
+            from voxtool.ground import check_has_height
+
+            check_has_height(str(path), leaves, res, thr)
         steps.update(1)
         written = writer(output, leaves, res, thr, include_free, **extra)
         steps.update(1)

@@ -346,6 +346,18 @@ def occupied_voxels(leaves: Leaves, threshold_log: float) -> tuple[np.ndarray, n
     return keys, np.repeat(leaves.values[occupied].astype(np.float64) / HIT_LOG, per_leaf)
 
 
+def check_has_height(where: str, leaves: Leaves, resolution: float, threshold_log: float) -> None:
+    """Refuse --above-ground on a map whose occupied voxels lie in two layers or fewer: a level
+    2D scanner's map, in which the ground model would take the walls for the floor and drop them
+    from the grid (a planner would drive through them)."""
+    keys, _ = occupied_voxels(leaves, threshold_log)
+    if keys.shape[0] and keys[:, 2].max() - keys[:, 2].min() < 2:
+        lo, hi = ((int(keys[:, 2].min()) - TREE_MAX_VAL) * resolution, (int(keys[:, 2].max()) + 1 - TREE_MAX_VAL) * resolution)
+        raise ParameterError(f"{where}: --above-ground: its occupied voxels lie in {int(np.ptp(keys[:, 2])) + 1} "
+                             f"layer(s) of {resolution:g} m (z {lo:.2f}..{hi:.2f} m), a 2D scanner's map, with no ground "
+                             "to measure height from: export it without --above-ground (every occupied voxel an obstacle)")
+
+
 def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float, band: tuple[float, float],
                          params: GroundParams = GroundParams()) -> Grid2D:
     """The 2D grid of what stands MIN..MAX metres above the ground: a cell is occupied where an
