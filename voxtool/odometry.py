@@ -154,6 +154,11 @@ def path_length(positions: np.ndarray, step: float) -> float:
     return total
 
 
+def _one_direction_run(weak: int, scans: int) -> bool:
+    """Whether a run's scans that fix one direction only are enough to flag it."""
+    return weak > 0 and weak >= DEGENERATE_SHARE * scans
+
+
 def plausibility(positions: np.ndarray, stamps_ns: np.ndarray, registered: np.ndarray, planar: bool,
                  max_range: float, support: np.ndarray | None = None) -> dict:
     """What says a run diverged or had too little to go on: steps faster than a sensor of its
@@ -174,7 +179,7 @@ def plausibility(positions: np.ndarray, stamps_ns: np.ndarray, registered: np.nd
     sparse = np.flatnonzero(registered < MIN_POINTS)
     # a scan too sparse to register is counted as sparse, not again as degenerate
     weak = np.flatnonzero((support < MIN_SUPPORT) & (registered >= MIN_POINTS)) if support is not None else np.zeros(0, int)
-    degenerate = len(registered) > 0 and weak.size >= DEGENERATE_SHARE * len(registered)
+    degenerate = _one_direction_run(weak.size, len(registered))
     return {"implausible_steps": int(bad.size), "first_implausible_scan": int(bad[0] + 1) if bad.size else None,
             "max_speed_m_s" if timed else "max_step_m": round(worst, 3),
             "limit": f"{limit} m/s" if timed else f"{max_range / 4.0:g} m a scan",
@@ -241,7 +246,7 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
             said.append(f"{check['sparse_scans']} scans with fewer than {MIN_POINTS} points to register (the first: "
                         f"scan {check['first_sparse_scan']})")
         weak = check["one_direction_scans"] or 0
-        if weak >= DEGENERATE_SHARE * len(poses):
+        if _one_direction_run(weak, len(poses)):
             said.append(f"{weak} scans ({100 * weak / len(poses):.0f} %) fix the motion in one direction only, a single "
                         "wall or a featureless corridor in range: motion along it is not measured (the first: scan "
                         f"{check['first_one_direction_scan']})")

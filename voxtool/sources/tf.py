@@ -115,6 +115,7 @@ class StampedPoses:
         self.stamps = [stamps[k] for k in last]
         self.values = [self.values[order[k]] for k in last]
         self._in_order = True
+        self._made = {}  # indices moved
 
     def _pose(self, i: int) -> Pose:
         pose = self._made.get(i)
