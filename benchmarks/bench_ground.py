@@ -17,7 +17,9 @@ The grid table (`export --above-ground 0.3,2` of each sequence's map, what a pla
   but the ground's) 0.3-2 m above the labelled ground under them (the median height of the ground
   points within 1 m) that it marks occupied;
 - path free: the share of cells within 2 m of the driven path (the sensor's positions, joined)
-  that it marks free; `--pcd DIR --poses FILE` adds an unlabelled dump (path free only).
+  that it marks free; `--pcd DIR --poses FILE` adds an unlabelled dump (path free only);
+- path free, cleaned: the same of the grid of `clean --map` at the same resolution (the map of
+  the points `clean` keeps: vehicles that drive alongside are no obstacle in it).
 """
 
 from __future__ import annotations
@@ -149,6 +151,21 @@ def grid_of(source: Path, resolution: float, poses: str | None = None):
     return grid, scans, np.array([s.origin for s in scans], np.float64), seconds
 
 
+def cleaned_path_free(source: Path, resolution: float, origins: np.ndarray, poses: str | None = None) -> float:
+    """The path-free share of the --above-ground grid of `clean --map`'s map of the source."""
+    from voxtool.clean import CleanParams, clean_source
+    from voxtool.ground import project_above_ground
+    from voxtool.io.mapfile import load_map
+    from voxtool.sources import SourceOptions
+
+    out = OUT / f"cleaned_{source.name}.vxm"
+    OUT.mkdir(exist_ok=True)
+    clean_source(source, SourceOptions(poses=poses), CleanParams(resolution=resolution), map_output=out, progress=False)
+    backend, _ = load_map(out)
+    grid = project_above_ground(backend.leaves(), resolution, backend.sensor.threshold_log, BAND)
+    return _share(grid, path_cells(grid, origins), 0)
+
+
 def grid_rows(kitti: Path, resolution: float, pcd: list[tuple[Path, str]]) -> list[dict]:
     rows = []
     for sequence in sorted(p for p in kitti.iterdir() if (p / "labels").is_dir()):
@@ -159,11 +176,13 @@ def grid_rows(kitti: Path, resolution: float, pcd: list[tuple[Path, str]]) -> li
         road, objects = labelled_cells(grid, points, labels)
         rows.append({"input": f"KITTI {sequence.name}", "road_cells": len(road), "road_free": _share(grid, road, 0),
                      "object_cells": len(objects), "objects_occupied": _share(grid, objects, 100),
-                     "path_free": _share(grid, path_cells(grid, origins), 0), "ground_s": round(seconds, 3)})
+                     "path_free": _share(grid, path_cells(grid, origins), 0),
+                     "path_free_cleaned": cleaned_path_free(sequence, resolution, origins), "ground_s": round(seconds, 3)})
     for folder, poses in pcd:
         grid, _, origins, seconds = grid_of(folder, resolution, poses)
         rows.append({"input": folder.name, "road_cells": None, "road_free": None, "object_cells": None,
                      "objects_occupied": None, "path_free": _share(grid, path_cells(grid, origins), 0),
+                     "path_free_cleaned": cleaned_path_free(folder, resolution, origins, poses),
                      "ground_s": round(seconds, 3)})
     return rows
 
@@ -195,13 +214,13 @@ def main() -> None:
     args = ap.parse_args()
     grid = grid_rows(Path(args.kitti), args.resolution, [(Path(d), p) for d, p in args.pcd])
     print(f"{'input':<16} {'road cells':>10} {'road free %':>12} {'object cells':>13} {'objects occ. %':>15} "
-          f"{'path free %':>12} {'ground s':>9}")
+          f"{'path free %':>12} {'cleaned %':>10} {'ground s':>9}")
     for r in grid:
         print(f"{r['input']:<16} {r['road_cells'] if r['road_cells'] is not None else '-':>10} "
               f"{r['road_free'] if r['road_free'] is not None else '-':>12} "
               f"{r['object_cells'] if r['object_cells'] is not None else '-':>13} "
               f"{r['objects_occupied'] if r['objects_occupied'] is not None else '-':>15} {r['path_free']:>12} "
-              f"{r['ground_s']:>9}", flush=True)
+              f"{r['path_free_cleaned']:>10} {r['ground_s']:>9}", flush=True)
     OUT.mkdir(exist_ok=True)
     (OUT / "ground_grid.json").write_text(json.dumps({"rows": grid, "args": vars(args)}, indent=2))
     if args.grid_only:

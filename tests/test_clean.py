@@ -442,8 +442,9 @@ def test_clean_shows_what_it_removed(tmp_path):
 
 
 @pytest.mark.parametrize("args, exit_code, message", [
-    (["-o", "static.txt"], 2, "static.txt: the static map is written as .pcd or .ply"),
+    (["-o", "static.txt"], 2, "static.txt: the static points are written as .pcd or .ply"),
     (["--labels", "labels.csv"], 2, "labels.csv: labels are written as .npy"),
+    (["--map", "static.pcd"], 2, "static.pcd: --map writes a map snapshot, a .vxm"),
     ([], 2, "clean writes its result: give -o"),
     (["-o", "static.pcd", "--resolution", "0"], 2, "resolution=0.0 must lie in"),
     (["-o", "static.pcd", "--pose-error", "9"], 2, "pose_error=9 must lie in 0..5"),
@@ -592,3 +593,41 @@ def test_a_2d_scanner_s_walker_is_removed_and_its_room_kept(tmp_path):
     assert on_walker.sum() > 3000 and removed.shape == on_walker.shape
     assert removed[on_walker].mean() > 0.25, removed[on_walker].mean()
     assert removed[~on_walker].mean() < 0.001, removed[~on_walker].sum()
+
+
+def test_the_map_of_the_kept_points_is_the_build_of_the_scans_without_the_mover(tmp_path):
+    """`clean --map`: the octree of the points clean keeps. On the moving box, whose points clean
+    removes exactly, it is voxel for voxel the map `build` makes of the same scans with the box's
+    points taken out by the truth, while the map of all the scans holds the box's trail."""
+    import dataclasses
+
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.io.mapfile import load_map
+    from voxtool.maps import make_backend
+    from voxtool.pipeline import build
+
+    truth = write_pcd_scans(one_moving_box(12), tmp_path / "scans")
+    code, text, err = cli("clean", tmp_path / "scans", "--map", tmp_path / "static.vxm", "--resolution", "0.1",
+                          "--json", "--no-progress")
+    assert code == 0, err
+    got = json.loads(text)
+    assert got["points_removed"] == int(truth.sum()) > 500 and got["map"]["occupied_voxels"] > 0
+
+    def built(drop: bool):
+        stream = open_source(tmp_path / "scans")
+        scans, at = [], 0
+        for scan in stream.scans:
+            n = scan.points.shape[0]
+            keep = ~truth[at:at + n] if drop else np.ones(n, bool)
+            at += n
+            scans.append(dataclasses.replace(scan, points=np.ascontiguousarray(scan.points[keep])))
+        backend = make_backend("octree", MapParams(resolution=0.1), SensorModel())
+        build(dataclasses.replace(stream, scans=iter(scans)), backend, progress=False)
+        return backend.leaves()
+
+    cleaned, _ = load_map(tmp_path / "static.vxm")
+    ours, want, everything = cleaned.leaves(), built(True), built(False)
+    np.testing.assert_array_equal(ours.codes, want.codes)
+    np.testing.assert_array_equal(ours.values, want.values)
+    threshold = SensorModel().threshold_log
+    assert (everything.values > threshold).sum() > (ours.values > threshold).sum() + 50  # the box's trail

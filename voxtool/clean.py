@@ -392,6 +392,10 @@ class Cleaned:
     dynamic: np.ndarray  # (N,) bool
     scan_starts: np.ndarray  # (scans + 1,) int64
     figures: dict = field(default_factory=dict)
+    # each scan as read, less its points (its origin, stamp, no-return beams): what a map of the
+    # kept points casts its rays from (static_map)
+    shells: list = field(default_factory=list)
+    stream: ScanStream | None = None  # the source read (kind, path), its scans consumed
 
 
 def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, progress: bool | None = None) -> Cleaned:
@@ -427,6 +431,7 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     report = build(dataclasses.replace(stream, scans=iter(scans)), void_map, progress)
     clouds = [scan.points for scan in scans]  # as read: build casts each scan unchanged
     truths = [scan.extra.get("truth") for scan in scans]  # ground truth per point (--truth), where given
+    shells = [dataclasses.replace(scan, points=clouds[0][:0], extra={}) for scan in scans]
     del scans
     t0 = time.perf_counter()
     points = np.concatenate(clouds) if clouds else np.empty((0, 3), dtype=np.float32)
@@ -452,18 +457,44 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     if truths and all(t is not None for t in truths):
         truth = np.concatenate(truths)
         figures["accuracy"] = accuracy_figures(dynamic, truth)
-    return Cleaned(points, dynamic, starts, figures)
+    return Cleaned(points, dynamic, starts, figures, shells, stream)
+
+
+def static_map(cleaned: Cleaned, params: CleanParams, threads: int = 0, progress: bool | None = None):
+    """The occupancy map of the kept points (octree, OctoMap's sensor model, clean's resolution and
+    max range): each scan's rays cast from its origin to its kept points, its no-return beams as
+    read; a removed point marks nothing and its ray is not cast. Returns (backend, build report).
+    A planner's grid of it (export --above-ground) has no movers in it."""
+    import dataclasses
+
+    from voxtool.config import MapParams, SensorModel
+    from voxtool.maps import make_backend
+    from voxtool.pipeline import build
+
+    starts, keep = cleaned.scan_starts, ~cleaned.dynamic
+    scans = (dataclasses.replace(shell, points=np.ascontiguousarray(cleaned.points[a:b][keep[a:b]]))
+             for shell, a, b in zip(cleaned.shells, starts[:-1], starts[1:]))
+    backend = make_backend("octree", MapParams(resolution=params.resolution, max_range=params.max_range), SensorModel(),
+                           threads=threads)
+    report = build(dataclasses.replace(cleaned.stream, scans=scans), backend, progress)
+    return backend, report
 
 
 def check_outputs(output: str | os.PathLike | None, labels: str | os.PathLike | None,
-                  dynamic: str | os.PathLike | None = None, png: str | os.PathLike | None = None) -> None:
+                  dynamic: str | os.PathLike | None = None, png: str | os.PathLike | None = None,
+                  map_output: str | os.PathLike | None = None) -> None:
     """Refuse outputs that cannot be written before any work."""
     from voxtool.atomic import check_writable
 
-    if output is None and labels is None and dynamic is None and png is None:
-        raise ParameterError("clean writes its result: give -o STATIC.pcd/.ply, --labels LABELS.npy, --dynamic "
-                             "REMOVED.pcd/.ply or --png OUT.png")
-    for path, what in ((output, "the static map is"), (dynamic, "--dynamic: the removed points are")):
+    if output is None and labels is None and dynamic is None and png is None and map_output is None:
+        raise ParameterError("clean writes its result: give -o STATIC.pcd/.ply, --map STATIC.vxm, --labels LABELS.npy, "
+                             "--dynamic REMOVED.pcd/.ply or --png OUT.png")
+    if map_output is not None:
+        if Path(map_output).suffix.lower() != ".vxm":
+            raise ParameterError(f"{map_output}: --map writes a map snapshot, a .vxm (`voxtool export` makes .bt, .pgm, "
+                                 "... of it)")
+        check_writable(map_output)
+    for path, what in ((output, "the static points are"), (dynamic, "--dynamic: the removed points are")):
         if path is not None:
             if Path(path).suffix.lower() not in CLOUD_SUFFIXES:
                 raise ParameterError(f"{path}: {what} written as .pcd or .ply")
@@ -519,13 +550,15 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
                  output: str | os.PathLike | None = None, labels: str | os.PathLike | None = None,
                  threads: int = 0, progress: bool | None = None, dynamic: str | os.PathLike | None = None,
                  png: str | os.PathLike | None = None, view: str = "top",
-                 truth_npy: str | os.PathLike | None = None, above_ground: tuple | None = None) -> dict[str, Any]:
+                 truth_npy: str | os.PathLike | None = None, above_ground: tuple | None = None,
+                 map_output: str | os.PathLike | None = None) -> dict[str, Any]:
     """`voxtool clean`: judge every point of `source`; write the static points (`output`), the
-    labels, the removed points (`dynamic`) and/or a picture of what was removed (`png`: the
-    removed points in red over the kept ones, seen from `view`)."""
+    labels, the removed points (`dynamic`), a picture of what was removed (`png`: the removed
+    points in red over the kept ones, seen from `view`) and/or the map of the kept points
+    (`map_output`, a .vxm: static_map)."""
     from voxtool.sources import resolve_origin
 
-    check_outputs(output, labels, dynamic, png)
+    check_outputs(output, labels, dynamic, png, map_output)
     truth = None if truth_npy is None else read_truth_npy(truth_npy)  # a bad file fails before the work
     options = resolve_origin(source, options, params.resolution)
     cleaned = clean_stream(open_source(source, options), params, threads, progress)
@@ -539,6 +572,19 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
         write_cloud_points(output, cleaned.points, options.origin, params.resolution, keep=~cleaned.dynamic)
     if labels is not None:
         write_labels(labels, cleaned.dynamic)
+    if map_output is not None:
+        from voxtool.api import RECORDED_COUNTS, backend_stats, origin_of, save_counted
+
+        backend, report = static_map(cleaned, params, threads, progress)
+        counts = report.to_dict()
+        info = {"source": str(source), "source_kind": cleaned.stream.kind, "source_options": options.__dict__,
+                **{k: counts[k] for k in RECORDED_COUNTS}, "last_stamp_ns": report.last_stamp_ns or 0,
+                "origin": origin_of(options), "cleaned": {"points_removed": int(cleaned.dynamic.sum()),
+                                                          "params": asdict(params)}}
+        tree, _, _ = save_counted(map_output, backend, info)
+        stats = backend_stats(backend, tree)
+        cleaned.figures["map"] = {"written": str(map_output), "occupied_voxels": stats["occupied_voxels"],
+                                  "free_voxels": stats["free_voxels"]}
     if dynamic is not None:
         write_cloud_points(dynamic, cleaned.points, options.origin, params.resolution, keep=cleaned.dynamic)
     if png is not None:

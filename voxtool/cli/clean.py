@@ -23,6 +23,10 @@ from voxtool.cli.common import (
 @click.option("--sample", is_flag=True, help="Use the small real sample shipped with voxtool as SOURCE.")
 @click.option("-o", "--output", type=click.Path(path_type=Path), metavar="STATIC.pcd|.ply",
               help="Write the static points (world frame, scan order) here, atomically.")
+@click.option("--map", "map_output", type=click.Path(path_type=Path), metavar="STATIC.vxm",
+              help="Write the occupancy map of the static points here, atomically: every scan's rays cast to its kept "
+                   "points (octree, OctoMap's sensor model, at --resolution); the removed points mark nothing. A "
+                   "planner's grid without the movers: voxtool export STATIC.vxm -o grid.pgm --above-ground 0.3,2")
 @click.option("--labels", type=click.Path(path_type=Path), metavar="LABELS.npy",
               help="Write one uint8 per point voxtool read (0 static, 1 dynamic), in scan order; points dropped "
                    "as non-finite or below --min-range have none.")
@@ -61,9 +65,10 @@ from voxtool.cli.common import (
 @click.option("--json", "as_json", is_flag=True, help="Print figures and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def clean(source, sample, output, labels, dynamic, png, view, above_ground, resolution, sensor_noise, pose_error, group_share, max_range,
-          ground_band, truth, origin, threads, as_json, progress, **kw):
-    """Judge every point of SOURCE static or dynamic and write the static map (-o) and/or the labels.
+def clean(source, sample, output, map_output, labels, dynamic, png, view, above_ground, resolution, sensor_noise, pose_error,
+          group_share, max_range, ground_band, truth, origin, threads, as_json, progress, **kw):
+    """Judge every point of SOURCE static or dynamic and write the static points (-o), their map
+    (--map) and/or the labels.
 
     A point is dynamic when another scan saw through the space it occupies: its voxel is void
     (one scan's rays crossed it and every voxel within --pose-error of it), or it belongs to a
@@ -74,6 +79,7 @@ def clean(source, sample, output, labels, dynamic, png, view, above_ground, reso
     \b
     Examples:
       voxtool clean scans/ -o static.pcd
+      voxtool clean drive.bag --map static.vxm && voxtool export static.vxm -o grid.pgm --above-ground 0.3,2
       voxtool clean drive.mcap -o static.ply --labels labels.npy --json
       voxtool clean scans/ -o static.pcd --resolution 0.2 --sensor-noise 0.3
       voxtool clean sequences/08 -o static.pcd --truth sequences/08/labels   SemanticKITTI: SA, DA, AA"""
@@ -100,7 +106,7 @@ def clean(source, sample, output, labels, dynamic, png, view, above_ground, reso
 
         raise ParameterError("--above-ground colours a top view by height above the ground: not with --view")
     result = clean_source(source, options, params, output, labels, threads, progress, dynamic, png, view, truth_npy,
-                          band)
+                          band, map_output)
     t = result["timings_s"]
     removed = result["points_removed"]
     share = removed / max(result["points_in"], 1)
@@ -127,5 +133,8 @@ def clean(source, sample, output, labels, dynamic, png, view, above_ground, reso
                                         f"{score(a['AA'], '')}" + (" (no moving point in the truth: nothing to "
                                                                    "find, so DA and AA are not known)"
                                                                    if a["DA"] is None else "")))
-    written = [p for p in (output, labels, dynamic, png) if p is not None]
+    if "map" in result:
+        rows.append(("static map", f"{result['map']['occupied_voxels']:,} occupied, {result['map']['free_voxels']:,} free "
+                                   f"voxels at {resolution} m, the removed points left out"))
+    written = [p for p in (output, map_output, labels, dynamic, png) if p is not None]
     emit(result, as_json, rows, written=written if len(written) > 1 else written[0])
