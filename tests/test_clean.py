@@ -562,7 +562,7 @@ def test_a_2d_scanner_s_walker_is_removed_and_its_room_kept(tmp_path):
     At its defaults it used to remove nothing: a 2D scan's rays never cross the layers above and
     below, so no voxel's pose-error cube was ever seen whole, and every point lay in the
     'ground' band. Now about a third of the walker's points go, and none of the room's."""
-    from test_odometry_2d import WALLS, loop, write_scans
+    from test_odometry_2d import WALLS, loop, write_scans, write_truth_poses
 
     truth = loop(300)
 
@@ -576,8 +576,7 @@ def test_a_2d_scanner_s_walker_is_removed_and_its_room_kept(tmp_path):
 
     bag, poses = tmp_path / "walker.bag", tmp_path / "poses.txt"
     write_scans(bag, truth, walls)
-    poses.write_text("".join(f"{1 + i / 10:.1f} {x:.6f} {y:.6f} 0.2 0 0 {np.sin(a / 2):.9f} {np.cos(a / 2):.9f}\n"
-                             for i, (x, y, a) in enumerate(truth)))
+    write_truth_poses(poses, truth)
     code, text, err = cli("clean", bag, "--poses", poses, "-o", tmp_path / "static.pcd", "--labels",
                           tmp_path / "labels.npy", "--json", "--no-progress")
     assert code == 0, err

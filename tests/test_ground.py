@@ -300,13 +300,12 @@ def test_above_ground_refuses_a_2d_scanner_s_map(tmp_path):
     in one or two voxel layers: the ground model took them for the floor, and the grid lost
     them (315 occupied cells of 437 on a Gazebo log). One line, exit 2, nothing written; the plain
     grid keeps every wall."""
-    from test_odometry_2d import loop, write_scans
+    from test_odometry_2d import loop, write_scans, write_truth_poses
 
     truth = loop(100)
     bag, poses = tmp_path / "room.bag", tmp_path / "poses.txt"
     write_scans(bag, truth)
-    poses.write_text("".join(f"{1 + i / 10:.1f} {x:.6f} {y:.6f} 0.2 0 0 {np.sin(a / 2):.9f} {np.cos(a / 2):.9f}\n"
-                             for i, (x, y, a) in enumerate(truth)))
+    write_truth_poses(poses, truth)
     code, _, err = cli("build", bag, "--poses", poses, "-o", tmp_path / "m.vxm", "--resolution", "0.05", "--no-progress")
     assert code == 0, err
     code, _, err = cli("export", tmp_path / "m.vxm", "-o", tmp_path / "g.pgm", "--above-ground", "0.1,0.5")

@@ -67,6 +67,12 @@ def write_scans(path, truth: np.ndarray, walls=WALLS, seed: int = 4) -> None:
             writer.write(c, ns, store.serialize_ros1(msg, "sensor_msgs/msg/LaserScan"))
 
 
+def write_truth_poses(path, truth: np.ndarray) -> None:
+    """TUM rows of the scanner's true poses, 0.2 m up, at write_scans' stamps: a --poses file."""
+    path.write_text("".join(f"{1 + i / 10:.1f} {x:.6f} {y:.6f} 0.2 0 0 {np.sin(a / 2):.9f} {np.cos(a / 2):.9f}\n"
+                            for i, (x, y, a) in enumerate(truth)))
+
+
 @pytest.fixture(scope="module")
 def room_bag(tmp_path_factory):
     path = tmp_path_factory.mktemp("room") / "room.bag"

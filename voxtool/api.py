@@ -79,10 +79,7 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
     counts = report.to_dict()
     tree, t_stats, t_write = None, 0.0, None
     if output is not None:
-        info = {"source": str(source), "source_kind": stream.kind, "source_options": options.__dict__,
-                **{k: counts[k] for k in RECORDED_COUNTS}, "last_stamp_ns": report.last_stamp_ns or 0,
-                "origin": origin_of(options)}
-        tree, t_stats, t_write = save_counted(output, backend, info)
+        tree, t_stats, t_write = save_counted(output, backend, snapshot_info(source, stream.kind, options, report))
     t0 = time.perf_counter()
     result = backend_stats(backend, tree)
     t_stats += time.perf_counter() - t0
@@ -102,6 +99,15 @@ def build_map(source: str | os.PathLike, options: SourceOptions, params: MapPara
                                open=round(t_loop_end - t_start - report.time_total - report.time_jit, 6),
                                stats=round(t_stats, 6))
     return result
+
+
+def snapshot_info(source: str | os.PathLike, kind: str, options: SourceOptions, report) -> dict:
+    """What a map snapshot records of the build that made it (`report`: pipeline.build's):
+    its source, the source's options, its counts, its last scan's stamp and its local origin."""
+    counts = report.to_dict()
+    return {"source": str(source), "source_kind": kind, "source_options": options.__dict__,
+            **{k: counts[k] for k in RECORDED_COUNTS}, "last_stamp_ns": report.last_stamp_ns or 0,
+            "origin": origin_of(options)}
 
 
 def origin_of(options: SourceOptions) -> list[float]:

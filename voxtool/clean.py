@@ -573,14 +573,11 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
     if labels is not None:
         write_labels(labels, cleaned.dynamic)
     if map_output is not None:
-        from voxtool.api import RECORDED_COUNTS, backend_stats, origin_of, save_counted
+        from voxtool.api import backend_stats, save_counted, snapshot_info
 
         backend, report = static_map(cleaned, params, threads, progress)
-        counts = report.to_dict()
-        info = {"source": str(source), "source_kind": cleaned.stream.kind, "source_options": options.__dict__,
-                **{k: counts[k] for k in RECORDED_COUNTS}, "last_stamp_ns": report.last_stamp_ns or 0,
-                "origin": origin_of(options), "cleaned": {"points_removed": int(cleaned.dynamic.sum()),
-                                                          "params": asdict(params)}}
+        info = {**snapshot_info(source, cleaned.stream.kind, options, report),
+                "cleaned": {"points_removed": int(cleaned.dynamic.sum()), "params": asdict(params)}}
         tree, _, _ = save_counted(map_output, backend, info)
         stats = backend_stats(backend, tree)
         cleaned.figures["map"] = {"written": str(map_output), "occupied_voxels": stats["occupied_voxels"],
