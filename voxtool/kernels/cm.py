@@ -237,9 +237,118 @@ BLOCK = 4
 OFF_BLOCK = N_CONTEXTS  # 8 contexts for the block flags
 N_CONTEXTS_BLOCKS = N_CONTEXTS + 8
 
+# Codec 4's coder makes codec 3's decisions in the same order with the same probabilities, in
+# fewer instructions a cell (its time went on them, not on the range coder: docs/design/packets.md):
+# - a context's probability state and its count share one int64 (state << 8 | count): one load
+#   and one store a decision;
+# - a cell's row bits (code_box's) are written by the known cells that set them (six stores a
+#   change) rather than read from six rows at every cell coded (about 11 a change);
+# - decision 1's context comes from two tables indexed by a 12-bit window of bits 0-3 of the row
+#   bits of cells x-1, x, x+1: what _cell_context computes bit by bit.
+
+
+def _context_tables():
+    near = np.zeros(1 << 12, dtype=np.int64)
+    far = np.zeros(1 << 12, dtype=np.int64)
+    for w in range(1 << 12):
+        left, mid, right = w >> 8, (w >> 4) & 15, w & 15
+        near[w] = (((right & 1) << 1) | ((mid & 1) << 2) | ((left & 1) << 3) | ((right & 2) << 3)
+                   | ((mid & 2) << 4) | ((left & 2) << 5) | ((mid & 4) << 5) | ((mid & 8) << 5))
+        far[w] = OFF_FAR + (((right >> 2) & 1) | ((left >> 1) & 2) | ((right >> 1) & 4) | (left & 8))
+    return near, far
+
+
+NEAR_OF_WINDOW, FAR_OF_WINDOW = _context_tables()
+
+
+@njit(cache=True, inline="always")
+def _code_entry(bit, entry, rng, low, cache, pending, data, pos, decode):
+    """_code_bit then _learn, on a packed table entry (state << 8 | count); returns it updated."""
+    state = entry >> 8
+    n = entry & 0xFF
+    bit, rng, low, cache, pending, pos = _code_bit(bit, state >> STATE_SHIFT, rng, low, cache, pending, data, pos,
+                                                   decode)
+    if bit:
+        state = min(state + (((STATE_ONE - state) * RATE[n]) >> PROB_BITS), STATE_MAX)
+    else:
+        state = max(state + ((-state * RATE[n]) >> PROB_BITS), STATE_MIN)
+    return bit, (state << 8) | (n + (n < COUNT_LIMIT)), rng, low, cache, pending, pos
+
+
+@njit(cache=True, inline="always")
+def _code_packed(bit, table, ctx, rng, low, cache, pending, data, pos, decode):
+    """_code_entry on the table's entry of context ctx."""
+    at = np.uintp(ctx)  # unsigned: no wraparound test for negative indices
+    bit, table[at], rng, low, cache, pending, pos = _code_entry(bit, table[at], rng, low, cache, pending, data, pos,
+                                                                decode)
+    return bit, rng, low, cache, pending, pos
+
+
+def _make_known_coder(decode: bool):
+    """Decisions 2 and 3 of a cell decision 1 found known (formats/packet.md): occupied? then
+    other or free? A function of its own whose decisions go round one loop, so that the coder is
+    compiled once here and once for decision 1 (more copies in one function made numba's code
+    several times slower); `decode` a compile-time constant, as in the coders below."""
+
+    @njit(cache=True, nogil=True)
+    def code_known(code, other, ctx, table, rng, low, cache, pending, data, pos):
+        """Returns (the cell's code, its class, the coder's state)."""
+        bit = code == 1
+        step = 0
+        while True:
+            bit, rng, low, cache, pending, pos = _code_packed(bit, table, ctx, rng, low, cache, pending, data, pos,
+                                                              decode)
+            if step == 1:
+                return (other if bit else 0), CLASS_OTHER, rng, low, cache, pending, pos
+            if bit:
+                return 1, CLASS_OCC, rng, low, cache, pending, pos
+            ctx = OFF_ALT
+            bit = code == other
+            step = 1
+
+    return code_known
+
+
+def _make_background_coder(decode: bool):
+    """Decision 1 of the cells of a run from place `at` up to `end` (not included), the loop most
+    of the time goes round: written apart from a known cell's work, to which it returns, it keeps
+    to a load of the cell's row bits, two table lookups and the coder. The encoder codes the cell
+    at place `stop` as known and every other as background; the decoder decodes. Either returns
+    at the first known cell: (where it stopped, window, hi, r0, known?, held, entry, the coder's
+    state). `held`, `entry`: the context of the decision before and its table entry, kept out of
+    the table while the next cells use the same context (most do), so that a decision does not
+    wait for the store of the one before."""
+
+    @njit(cache=True, nogil=True)
+    def code_background(table, row_bits, at, end, stop, window, hi, r0, held, entry, rng, low, cache, pending, data,
+                        pos):
+        near_of, far_of = NEAR_OF_WINDOW, FAR_OF_WINDOW
+        while at < end:
+            bits = row_bits[np.uintp(at + 1)]
+            window = ((window << 4) & 0xFF0) | (bits & 15)
+            ctx = near_of[window] | (r0 & 1)
+            if ctx == 0:
+                ctx = far_of[window] | ((r0 >> 1) << 4) | (hi << 1)
+            hi = np.int64(bits & 48)
+            if ctx != held:  # the context of the decision before is held in `entry`, not in the table
+                table[np.uintp(held)] = entry
+                entry = table[np.uintp(ctx)]
+                held = ctx
+            known, entry, rng, low, cache, pending, pos = _code_entry(
+                at == stop, entry, rng, low, cache, pending, data, pos, decode)
+            r0 = ((r0 << 1) & 3) | known
+            if known:
+                return at, window, hi, r0, True, held, entry, rng, low, cache, pending, pos
+            at += 1
+        return at, window, hi, r0, False, held, entry, rng, low, cache, pending, pos
+
+    return code_background
+
 
 def _make_block_coder(decode: bool):
     """Codec 4's encoder or decoder (one loop, `decode` a compile-time constant of each)."""
+    code_known = _make_known_coder(decode)
+    code_background = _make_background_coder(decode)
 
     @njit(cache=True, nogil=True)
     def code_blocks(idx, vals, nx, ny, nz, background, data, out_idx, out_vals):
@@ -249,16 +358,28 @@ def _make_block_coder(decode: bool):
         bzn = (nz + BLOCK - 1) // BLOCK
         if nx == 0 or ny == 0 or nz == 0:
             bzn = 0
-        planes = np.zeros((3, ny + 2 * PAD if bzn else 0, nx + 2 * PAD if bzn else 0), dtype=np.uint8)
-        around = np.zeros(nx + 2 * PAD, dtype=np.uint8)
+        # Three planes in turn (z, z+1, z+2 in slots z % 3), each padded by 2 cells on every side
+        # and flattened: a cell's place in its plane is `at` = (y + PAD) * width + x + PAD.
+        # classes: the classes of planes z-2..z (decision 2's context). row_bits: each cell's six
+        # row bits (code_box's), set when a known cell is coded, by that cell, in the five cells
+        # that read it; so a cell's context costs one load, and the work is per change, not per
+        # cell. Both are cleared cell by cell from the known cells' places (`known_at`).
+        width = nx + 2 * PAD if bzn else 0
+        plane = (ny + 2 * PAD) * width
+        classes = np.zeros(3 * plane, dtype=np.uint8)
+        row_bits = np.zeros(3 * plane, dtype=np.uint8)
+        known_at = np.empty(out_idx.shape[0] if decode else idx.shape[0], dtype=np.int64)
+        plane_first = np.zeros(nz + 1, dtype=np.int64)  # the first known cell of each plane
         # block flags of this slab and the one below, padded by one block before x and y
         flags = np.zeros((2, byn + 1, bxn + 1), dtype=np.uint8)
         # per slab parity, each block row's runs of flagged blocks (x0, x1 in cells): row by's
         # runs are runs[p, run_at[p, by]:run_at[p, by + 1]]
         runs = np.empty((2, byn * (bxn + 1) + 1, 2), dtype=np.int64)
         run_at = np.zeros((2, byn + 1), dtype=np.int64)
-        probs = np.full(N_CONTEXTS_BLOCKS, STATE_ONE // 2, dtype=np.int64)
-        counts = np.zeros(N_CONTEXTS_BLOCKS, dtype=np.int64)
+        table = np.full(N_CONTEXTS_BLOCKS, (STATE_ONE // 2) << 8, dtype=np.int64)
+        # decision 1's context last used, and its entry, held out of the table while cells use it
+        held = 0
+        entry = table[0]
         cap = data.shape[0]
         rng = np.int64(0xFFFFFFFF)
         low = np.int64(0)
@@ -275,6 +396,7 @@ def _make_block_coder(decode: bool):
         plane_cells = np.int64(nx) * ny
         j = 0  # encoder: next cell of idx; decoder: cells written to out_*
         n_in = idx.shape[0]
+        next_cell = idx[0] if not decode and n_in > 0 else -1
         for bz in range(bzn):
             par = bz & 1
             cur = flags[par]
@@ -292,14 +414,14 @@ def _make_block_coder(decode: bool):
             n_runs = 0
             for by in range(byn):
                 run_at[par, by] = n_runs
+                row, before, under = cur[by + 1], cur[by], below_flags[by + 1]
                 for bx in range(bxn):
-                    ctx = OFF_BLOCK + cur[by + 1, bx] + 2 * cur[by, bx + 1] + 4 * below_flags[by + 1, bx + 1]
-                    flag, rng, low, cache, pending, pos = _code_bit(
-                        cur[by + 1, bx + 1] != 0, probs[ctx] >> STATE_SHIFT, rng, low, cache, pending, data, pos, decode)
-                    _learn(probs, counts, ctx, flag)
-                    cur[by + 1, bx + 1] = flag
+                    ctx = OFF_BLOCK + row[bx] + 2 * before[bx + 1] + 4 * under[bx + 1]
+                    flag, rng, low, cache, pending, pos = _code_packed(
+                        row[bx + 1] != 0, table, ctx, rng, low, cache, pending, data, pos, decode)
+                    row[bx + 1] = flag
                     if flag:
-                        if bx > 0 and cur[by + 1, bx] and n_runs > run_at[par, by]:
+                        if bx > 0 and row[bx] and n_runs > run_at[par, by]:
                             runs[par, n_runs - 1, 1] = min((bx + 1) * BLOCK, nx)  # extends the run before
                         else:
                             runs[par, n_runs, 0] = bx * BLOCK
@@ -307,49 +429,73 @@ def _make_block_coder(decode: bool):
                             n_runs += 1
             run_at[par, byn] = n_runs
             for z in range(bz * BLOCK, min((bz + 1) * BLOCK, nz)):
-                grid = planes[z % 3]
-                if z >= 3:  # the slot holds plane z-3: clear the cells it coded (its runs)
-                    old = ((z - 3) // BLOCK) & 1
-                    for y in range(ny):
-                        by = y // BLOCK
-                        for r in range(run_at[old, by], run_at[old, by + 1]):
-                            grid[y + PAD, runs[old, r, 0] + PAD:runs[old, r, 1] + PAD] = 0
-                below = planes[(z + 2) % 3]
-                below2 = planes[(z + 1) % 3]
+                plane_first[z] = j
+                here = (z % 3) * plane
+                below = ((z + 2) % 3) * plane
+                above = ((z + 1) % 3) * plane
+                # slot z+2 held plane z-1: clear what planes z-3..z-1 set there (rows -1..+2 of
+                # each known cell), and the classes plane z-3 set in slot z
+                for k in range(plane_first[max(z - 3, 0)], j):
+                    at = below + known_at[k]
+                    row_bits[at - width] = 0
+                    row_bits[at] = 0
+                    row_bits[at + width] = 0
+                    row_bits[at + 2 * width] = 0
+                if z >= 3:
+                    for k in range(plane_first[z - 3], plane_first[z - 2]):
+                        classes[here + known_at[k]] = 0
                 for y in range(ny):
                     by = y // BLOCK
-                    yy = y + PAD
+                    row_at = (y + PAD) * width + PAD  # the place of cell (0, y)
                     for r in range(run_at[par, by], run_at[par, by + 1]):
-                        x0 = runs[par, r, 0] + PAD
-                        x1 = runs[par, r, 1] + PAD
+                        x0 = runs[par, r, 0]
+                        x1 = runs[par, r, 1]
                         if not decode and pos + pending + 5 * (x1 - x0) + 8 > cap:
                             return -1, j
-                        for xx in range(x0 - 1, x1 + 1):  # the row bits the window reads
-                            around[xx] = ((grid[yy - 1, xx] != 0) | ((below[yy, xx] != 0) << 1)
-                                          | ((below[yy - 1, xx] != 0) << 2) | ((below[yy + 1, xx] != 0) << 3)
-                                          | ((grid[yy - 2, xx] != 0) << 4) | ((below2[yy, xx] != 0) << 5))
-                        window = (np.int64(around[x0 - 1]) << 16) | (np.int64(around[x0]) << 8) | around[x0 + 1]
-                        r0 = 0  # the two cells before a run lie in blank blocks or outside the box
-                        cell = (np.int64(z) * ny + y) * nx + (x0 - PAD)
-                        for x in range(x0, x1):
-                            ctx = _cell_context(window, r0)
+                        # window: bits 0-3 of the row bits of cells x-1 (bits 8-11), x, x+1;
+                        # hi: bits 4-5 of cell x's
+                        at = here + row_at + x0
+                        end = at + (x1 - x0)
+                        window = ((np.int64(row_bits[at - 1]) & 15) << 4) | (row_bits[at] & 15)
+                        hi = np.int64(row_bits[at] & 48)
+                        r0 = 0  # bit 0: cell x-1 of this row, bit 1: cell x-2 (blank blocks or outside before a run)
+                        cell_at = (np.int64(z) * ny + y) * nx + x0 - at  # a cell's index is cell_at + its place
+                        while at < end:
+                            stop = -1
+                            if not decode and next_cell >= 0 and next_cell - cell_at < end:
+                                stop = next_cell - cell_at
+                            at, window, hi, r0, known, held, entry, rng, low, cache, pending, pos = code_background(
+                                table, row_bits, at, end, stop, window, hi, r0, held, entry, rng, low, cache, pending,
+                                data, pos)
+                            if not known:
+                                break
+                            cell = cell_at + at
                             code = background
-                            if not decode and j < n_in and idx[j] == cell:
+                            if not decode:
                                 code = vals[j]
                                 j += 1
-                            code, cls, rng, low, cache, pending, pos = _code_cell(
-                                code, background, other, ctx, grid, below, yy, x, probs, counts, rng, low, cache,
-                                pending, data, pos, decode)
-                            if decode and cls != BACKGROUND:
+                                next_cell = idx[j] if j < n_in else -1
+                            ctx = OFF_OCC + classes[at - 1] + 3 * classes[at - width] + 9 * classes[at - here + below]
+                            code, cls, rng, low, cache, pending, pos = code_known(
+                                code, other, ctx, table, rng, low, cache, pending, data, pos)
+                            classes[at] = cls
+                            placed = at - here
+                            row_bits[at + width] |= 1  # row y+1 of this plane: its row y-1
+                            row_bits[at + 2 * width] |= 16  # row y+2: its row y-2
+                            row_bits[above + placed] |= 2  # plane z+1, row y: below, row y
+                            row_bits[above + placed + width] |= 4  # row y+1: below, row y-1
+                            row_bits[above + placed - width] |= 8  # row y-1: below, row y+1
+                            row_bits[below + placed] |= 32  # plane z+2 (in slot z-1), row y: two below
+                            if decode:
                                 if j >= out_idx.shape[0]:
                                     return -2, j  # more cells than the packet declares
                                 out_idx[j] = cell
                                 out_vals[j] = code
+                                known_at[j] = placed
                                 j += 1
-                            grid[yy, x] = cls
-                            r0 = ((r0 << 1) & 3) | (cls != 0)
-                            window = ((window << 8) & 0xFFFFFF) | around[x + 2]
-                            cell += 1
+                            else:
+                                known_at[j - 1] = placed
+                            at += 1
         if not decode:
             if j != n_in:
                 return -3, j  # a cell outside the box, or idx not in nested order
