@@ -4,7 +4,7 @@ zstd and zlib see a box as a string of bytes, four cells each, along one curve. 
 is 3D: thin lines of newly free voxels and surfaces of new hits. cm codes each cell with a
 probability learned from the cells already coded around it in 3D, and so spends 40-60 %
 fewer bytes than zstd on the real streams (docs/packets.md). `cm` (codec 4) codes one decision
-per 8 x 8 x 8 block first and then the cells of the blocks that hold changes only, so its work
+per 4 x 4 x 4 block first and then the cells of the blocks that hold changes only, so its work
 follows the changes, not the box's volume; `cm1` (codec 3, the first cm coder) codes every cell and
 is kept so that older logs decode. Bytes: formats/packet.md.
 """

@@ -309,7 +309,13 @@ def _make_known_coder(decode: bool):
     return code_known
 
 
-def _make_background_coder(decode: bool):
+_encode_known = _make_known_coder(False)
+_decode_known = _make_known_coder(True)
+
+
+@njit(cache=True, inline="always")
+def _code_background(table, row_bits, at, end, stop, window, hi, r0, held, entry, rng, low, cache, pending, data,
+                     pos, decode):
     """Decision 1 of the cells of a run from place `at` up to `end` (not included), the loop most
     of the time goes round: written apart from a known cell's work, to which it returns, it keeps
     to a load of the cell's row bits, two table lookups and the coder. The encoder codes the cell
@@ -318,37 +324,29 @@ def _make_background_coder(decode: bool):
     state). `held`, `entry`: the context of the decision before and its table entry, kept out of
     the table while the next cells use the same context (most do), so that a decision does not
     wait for the store of the one before."""
-
-    @njit(cache=True, nogil=True)
-    def code_background(table, row_bits, at, end, stop, window, hi, r0, held, entry, rng, low, cache, pending, data,
-                        pos):
-        near_of, far_of = NEAR_OF_WINDOW, FAR_OF_WINDOW
-        while at < end:
-            bits = row_bits[np.uintp(at + 1)]
-            window = ((window << 4) & 0xFF0) | (bits & 15)
-            ctx = near_of[window] | (r0 & 1)
-            if ctx == 0:
-                ctx = far_of[window] | ((r0 >> 1) << 4) | (hi << 1)
-            hi = np.int64(bits & 48)
-            if ctx != held:  # the context of the decision before is held in `entry`, not in the table
-                table[np.uintp(held)] = entry
-                entry = table[np.uintp(ctx)]
-                held = ctx
-            known, entry, rng, low, cache, pending, pos = _code_entry(
-                at == stop, entry, rng, low, cache, pending, data, pos, decode)
-            r0 = ((r0 << 1) & 3) | known
-            if known:
-                return at, window, hi, r0, True, held, entry, rng, low, cache, pending, pos
-            at += 1
-        return at, window, hi, r0, False, held, entry, rng, low, cache, pending, pos
-
-    return code_background
+    near_of, far_of = NEAR_OF_WINDOW, FAR_OF_WINDOW
+    while at < end:
+        bits = row_bits[np.uintp(at + 1)]
+        window = ((window << 4) & 0xFF0) | (bits & 15)
+        ctx = near_of[window] | (r0 & 1)
+        if ctx == 0:
+            ctx = far_of[window] | ((r0 >> 1) << 4) | (hi << 1)
+        hi = np.int64(bits & 48)
+        if ctx != held:  # the context of the decision before is held in `entry`, not in the table
+            table[np.uintp(held)] = entry
+            entry = table[np.uintp(ctx)]
+            held = ctx
+        known, entry, rng, low, cache, pending, pos = _code_entry(
+            at == stop, entry, rng, low, cache, pending, data, pos, decode)
+        r0 = ((r0 << 1) & 3) | known
+        if known:
+            return at, window, hi, r0, True, held, entry, rng, low, cache, pending, pos
+        at += 1
+    return at, window, hi, r0, False, held, entry, rng, low, cache, pending, pos
 
 
 def _make_block_coder(decode: bool):
     """Codec 4's encoder or decoder (one loop, `decode` a compile-time constant of each)."""
-    code_known = _make_known_coder(decode)
-    code_background = _make_background_coder(decode)
 
     @njit(cache=True, nogil=True)
     def code_blocks(idx, vals, nx, ny, nz, background, data, out_idx, out_vals):
@@ -464,9 +462,9 @@ def _make_block_coder(decode: bool):
                             stop = -1
                             if not decode and next_cell >= 0 and next_cell - cell_at < end:
                                 stop = next_cell - cell_at
-                            at, window, hi, r0, known, held, entry, rng, low, cache, pending, pos = code_background(
+                            at, window, hi, r0, known, held, entry, rng, low, cache, pending, pos = _code_background(
                                 table, row_bits, at, end, stop, window, hi, r0, held, entry, rng, low, cache, pending,
-                                data, pos)
+                                data, pos, decode)
                             if not known:
                                 break
                             cell = cell_at + at
@@ -476,8 +474,12 @@ def _make_block_coder(decode: bool):
                                 j += 1
                                 next_cell = idx[j] if j < n_in else -1
                             ctx = OFF_OCC + classes[at - 1] + 3 * classes[at - width] + 9 * classes[at - here + below]
-                            code, cls, rng, low, cache, pending, pos = code_known(
-                                code, other, ctx, table, rng, low, cache, pending, data, pos)
+                            if decode:  # a global each (a closure's dispatcher would keep numba from caching)
+                                code, cls, rng, low, cache, pending, pos = _decode_known(
+                                    code, other, ctx, table, rng, low, cache, pending, data, pos)
+                            else:
+                                code, cls, rng, low, cache, pending, pos = _encode_known(
+                                    code, other, ctx, table, rng, low, cache, pending, data, pos)
                             classes[at] = cls
                             placed = at - here
                             row_bits[at + width] |= 1  # row y+1 of this plane: its row y-1
