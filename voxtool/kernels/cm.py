@@ -238,7 +238,8 @@ OFF_BLOCK = N_CONTEXTS  # 8 contexts for the block flags
 N_CONTEXTS_BLOCKS = N_CONTEXTS + 8
 
 # Codec 4's coder makes codec 3's decisions in the same order with the same probabilities, in
-# fewer instructions a cell (its time went on them, not on the range coder: docs/design/packets.md):
+# fewer instructions a cell (about half its time went on the work around the range coder, not on
+# the coder: docs/design/packets.md):
 # - a context's probability state and its count share one int64 (state << 8 | count): one load
 #   and one store a decision;
 # - a cell's row bits (code_box's) are written by the known cells that set them (six stores a
