@@ -360,7 +360,7 @@ def _make_block_coder(decode: bool):
         # Three planes in turn (z, z+1, z+2 in slots z % 3), each padded by 2 cells on every side
         # and flattened: a cell's place in its plane is `at` = (y + PAD) * width + x + PAD.
         # classes: the classes of planes z-2..z (decision 2's context). row_bits: each cell's six
-        # row bits (code_box's), set when a known cell is coded, by that cell, in the five cells
+        # row bits (code_box's), set when a known cell is coded, by that cell, in the six cells
         # that read it; so a cell's context costs one load, and the work is per change, not per
         # cell. Both are cleared cell by cell from the known cells' places (`known_at`).
         width = nx + 2 * PAD if bzn else 0
