@@ -42,17 +42,6 @@ BACKGROUND, CLASS_OCC, CLASS_OTHER = 0, 1, 2
 
 
 @njit(cache=True, inline="always")
-def _learn(probs, counts, ctx, bit):
-    """Move the context's probability of a 1 toward the bit by 1 / (n + 1.5)."""
-    n = counts[ctx]
-    state = probs[ctx]
-    state += (((STATE_ONE if bit else 0) - state) * RATE[n]) >> PROB_BITS  # floor, negative steps too
-    probs[ctx] = min(max(state, STATE_MIN), STATE_MAX)
-    if n < COUNT_LIMIT:
-        counts[ctx] = n + 1
-
-
-@njit(cache=True, inline="always")
 def _shift_low(low, cache, pending, data, pos):
     """Encoder: move the top byte of `low` out, resolving a pending carry (runs of 0xFF bytes)."""
     if (low & 0xFFFFFFFF) < 0xFF000000 or (low >> 32) != 0:
@@ -105,6 +94,31 @@ def _code_bit(bit, p, rng, low, cache, pending, data, pos, decode):
 
 
 @njit(cache=True, inline="always")
+def _code_entry(bit, entry, rng, low, cache, pending, data, pos, decode):
+    """_code_bit, then the entry (a context's state << 8 | its count n of observations) learns the
+    bit: its probability of a 1 moves toward it by 1 / (n + 1.5), floored (negative steps too).
+    Returns the entry updated."""
+    state = entry >> 8
+    n = entry & 0xFF
+    bit, rng, low, cache, pending, pos = _code_bit(bit, state >> STATE_SHIFT, rng, low, cache, pending, data, pos,
+                                                   decode)
+    if bit:
+        state = min(state + (((STATE_ONE - state) * RATE[n]) >> PROB_BITS), STATE_MAX)
+    else:
+        state = max(state + ((-state * RATE[n]) >> PROB_BITS), STATE_MIN)
+    return bit, (state << 8) | (n + (n < COUNT_LIMIT)), rng, low, cache, pending, pos
+
+
+@njit(cache=True, inline="always")
+def _code_packed(bit, table, ctx, rng, low, cache, pending, data, pos, decode):
+    """_code_entry on the table's entry of context ctx."""
+    at = np.uintp(ctx)  # unsigned: no wraparound test for negative indices
+    bit, table[at], rng, low, cache, pending, pos = _code_entry(bit, table[at], rng, low, cache, pending, data, pos,
+                                                                decode)
+    return bit, rng, low, cache, pending, pos
+
+
+@njit(cache=True, inline="always")
 def _cell_context(window, r0):
     """Decision 1's context from the sliding window of row bits (see code_box) and r0."""
     if window == 0 and r0 == 0:
@@ -122,8 +136,7 @@ def _cell_context(window, r0):
 
 
 @njit(cache=True, inline="always")
-def _code_cell(code, background, other, ctx, grid, below, yy, x, probs, counts, rng, low, cache, pending, data, pos,
-               decode):
+def _code_cell(code, background, other, ctx, grid, below, yy, x, table, rng, low, cache, pending, data, pos, decode):
     """A cell's decisions (formats/packet.md): known? then occupied? then other or free?
     Returns (its code, its class, the coder's state); the decoder learns the code here.
     The decisions go round one loop so that the coder is compiled once: three copies of it in
@@ -131,9 +144,7 @@ def _code_cell(code, background, other, ctx, grid, below, yy, x, probs, counts, 
     step = 0
     bit = code != background
     while True:
-        bit, rng, low, cache, pending, pos = _code_bit(
-            bit, probs[ctx] >> STATE_SHIFT, rng, low, cache, pending, data, pos, decode)
-        _learn(probs, counts, ctx, bit)
+        bit, rng, low, cache, pending, pos = _code_packed(bit, table, ctx, rng, low, cache, pending, data, pos, decode)
         if step == 0:  # known?
             if not bit:
                 return background, BACKGROUND, rng, low, cache, pending, pos
@@ -165,8 +176,7 @@ def _make_coder(decode: bool):
         # two planes back, and the memory stays three planes whatever the box's shape
         planes = np.zeros((3, ny + 2 * PAD if planes_z else 0, nx + 2 * PAD if planes_z else 0), dtype=np.uint8)
         around = np.zeros(nx + 2 * PAD, dtype=np.uint8)
-        probs = np.full(N_CONTEXTS, STATE_ONE // 2, dtype=np.int64)
-        counts = np.zeros(N_CONTEXTS, dtype=np.int64)
+        table = np.full(N_CONTEXTS, (STATE_ONE // 2) << 8, dtype=np.int64)  # packed entries (see _code_entry)
         cap = data.shape[0]
         rng = np.int64(0xFFFFFFFF)
         low = np.int64(0)  # encoder: low end of the interval (33 bits); decoder: offset into it
@@ -202,7 +212,7 @@ def _make_coder(decode: bool):
                 for x in range(PAD, nx + PAD):
                     ctx = _cell_context(window, r0)
                     code, cls, rng, low, cache, pending, pos = _code_cell(
-                        background if decode else codes[i], background, other, ctx, grid, below, y, x, probs, counts,
+                        background if decode else codes[i], background, other, ctx, grid, below, y, x, table,
                         rng, low, cache, pending, data, pos, decode)
                     if decode:
                         codes[i] = code
@@ -240,8 +250,8 @@ N_CONTEXTS_BLOCKS = N_CONTEXTS + 8
 # Codec 4's coder makes codec 3's decisions in the same order with the same probabilities, in
 # fewer instructions a cell (about half its time went on the work around the range coder, not on
 # the coder: docs/design/packets.md):
-# - a context's probability state and its count share one int64 (state << 8 | count): one load
-#   and one store a decision;
+# - a context's probability state and its count share one int64 (_code_entry, as in codec 3):
+#   one load and one store a decision;
 # - a cell's row bits (code_box's) are written by the known cells that set them (six stores a
 #   change) rather than read from six rows at every cell coded (about 11 a change);
 # - decision 1's context comes from two tables indexed by a 12-bit window of bits 0-3 of the row
@@ -249,40 +259,21 @@ N_CONTEXTS_BLOCKS = N_CONTEXTS + 8
 
 
 def _context_tables():
+    """_cell_context of every window of bits 0-3 of three cells' row bits, with r0 and the middle
+    cell's bits 4-5 zero: near[w] where a near neighbour is set (else 0), far[w] where none is
+    (the rest is or'ed in by the coder). Made by _cell_context's Python function at import."""
     near = np.zeros(1 << 12, dtype=np.int64)
-    far = np.zeros(1 << 12, dtype=np.int64)
+    far = np.full(1 << 12, OFF_FAR, dtype=np.int64)
     for w in range(1 << 12):
-        left, mid, right = w >> 8, (w >> 4) & 15, w & 15
-        near[w] = (((right & 1) << 1) | ((mid & 1) << 2) | ((left & 1) << 3) | ((right & 2) << 3)
-                   | ((mid & 2) << 4) | ((left & 2) << 5) | ((mid & 4) << 5) | ((mid & 8) << 5))
-        far[w] = OFF_FAR + (((right >> 2) & 1) | ((left >> 1) & 2) | ((right >> 1) & 4) | (left & 8))
+        ctx = _cell_context.py_func(((w >> 8) << 16) | (((w >> 4) & 15) << 8) | (w & 15), 0)
+        if ctx < OFF_FAR:
+            near[w] = ctx
+        else:
+            far[w] = ctx
     return near, far
 
 
 NEAR_OF_WINDOW, FAR_OF_WINDOW = _context_tables()
-
-
-@njit(cache=True, inline="always")
-def _code_entry(bit, entry, rng, low, cache, pending, data, pos, decode):
-    """_code_bit then _learn, on a packed table entry (state << 8 | count); returns it updated."""
-    state = entry >> 8
-    n = entry & 0xFF
-    bit, rng, low, cache, pending, pos = _code_bit(bit, state >> STATE_SHIFT, rng, low, cache, pending, data, pos,
-                                                   decode)
-    if bit:
-        state = min(state + (((STATE_ONE - state) * RATE[n]) >> PROB_BITS), STATE_MAX)
-    else:
-        state = max(state + ((-state * RATE[n]) >> PROB_BITS), STATE_MIN)
-    return bit, (state << 8) | (n + (n < COUNT_LIMIT)), rng, low, cache, pending, pos
-
-
-@njit(cache=True, inline="always")
-def _code_packed(bit, table, ctx, rng, low, cache, pending, data, pos, decode):
-    """_code_entry on the table's entry of context ctx."""
-    at = np.uintp(ctx)  # unsigned: no wraparound test for negative indices
-    bit, table[at], rng, low, cache, pending, pos = _code_entry(bit, table[at], rng, low, cache, pending, data, pos,
-                                                                decode)
-    return bit, rng, low, cache, pending, pos
 
 
 def _make_known_coder(decode: bool):
@@ -468,12 +459,7 @@ def _make_block_coder(decode: bool):
                                 data, pos, decode)
                             if not known:
                                 break
-                            cell = cell_at + at
-                            code = background
-                            if not decode:
-                                code = vals[j]
-                                j += 1
-                                next_cell = idx[j] if j < n_in else -1
+                            code = background if decode else vals[j]
                             ctx = OFF_OCC + classes[at - 1] + 3 * classes[at - width] + 9 * classes[at - here + below]
                             if decode:  # a global each (a closure's dispatcher would keep numba from caching)
                                 code, cls, rng, low, cache, pending, pos = _decode_known(
@@ -492,12 +478,12 @@ def _make_block_coder(decode: bool):
                             if decode:
                                 if j >= out_idx.shape[0]:
                                     return -2, j  # more cells than the packet declares
-                                out_idx[j] = cell
+                                out_idx[j] = cell_at + at
                                 out_vals[j] = code
-                                known_at[j] = placed
-                                j += 1
-                            else:
-                                known_at[j - 1] = placed
+                            known_at[j] = placed
+                            j += 1
+                            if not decode:
+                                next_cell = idx[j] if j < n_in else -1
                             at += 1
         if not decode:
             if j != n_in:
