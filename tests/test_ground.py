@@ -87,6 +87,30 @@ def test_returns_under_the_road_are_not_its_ground(tmp_path):
     assert np.array_equal(grid.cells[ys, xs], np.where(box, 100, 0))
 
 
+def test_a_lower_obstacle_threshold_marks_a_bush_rays_pass_through(tmp_path):
+    """A bush whose voxels were hit once and missed three times (log-odds 0.85 - 3 x 0.41 = -0.37)
+    is free in the map: no obstacle at the map's threshold, an obstacle at obstacle_log -0.4. A
+    voxel missed once and never hit (-0.41) stays free at -0.4, and the ground is the road both ways."""
+    from voxtool.ground import project_above_ground
+    from voxtool.io.mapfile import load_map
+
+    xs, ys = (a.ravel() for a in np.meshgrid(np.arange(30), np.arange(30), indexing="ij"))
+    bush = (xs >= 10) & (xs < 14) & (ys >= 10) & (ys < 14)
+    seen_once = (xs >= 20) & (xs < 24) & (ys >= 5) & (ys < 9)
+    keys = [np.c_[xs, ys, np.zeros(xs.shape, np.int64)]]  # the road, hit often
+    values = [np.full(xs.shape, 3.5)]
+    for k in (4, 5):  # 0.8-1.2 m over the road
+        keys += [np.c_[xs[bush], ys[bush], np.full(int(bush.sum()), k)],
+                 np.c_[xs[seen_once], ys[seen_once], np.full(int(seen_once.sum()), k)]]
+        values += [np.full(int(bush.sum()), 0.847 - 3 * 0.405), np.full(int(seen_once.sum()), -0.405)]
+    save_occupied(np.concatenate(keys) + TREE_MAX_VAL, tmp_path / "bush.vxm", np.concatenate(values))
+    backend = load_map(tmp_path / "bush.vxm")[0]
+    plain = project_above_ground(backend.leaves(), RES, backend.sensor.threshold_log, (0.3, 2.0))
+    lower = project_above_ground(backend.leaves(), RES, backend.sensor.threshold_log, (0.3, 2.0), obstacle_log=-0.4)
+    assert np.array_equal(plain.cells[ys, xs], np.zeros(xs.shape))
+    assert np.array_equal(lower.cells[ys, xs], np.where(bush, 100, 0))
+
+
 def test_a_road_across_a_voxel_boundary_is_free(tmp_path):
     """Real roads straddle voxel boundaries: each column holds the floor voxel and the one above it
     (KITTI: 0.2 m voxels, road points within 5 cm of a boundary). That upper voxel is still the

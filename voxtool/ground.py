@@ -359,12 +359,17 @@ def check_has_height(where: str, leaves: Leaves, resolution: float, threshold_lo
 
 
 def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float, band: tuple[float, float],
-                         params: GroundParams = GroundParams()) -> Grid2D:
+                         params: GroundParams = GroundParams(), obstacle_log: float | None = None) -> Grid2D:
     """The 2D grid of what stands MIN..MAX metres above the ground: a cell is occupied where an
     occupied voxel's centre lies in that band above the ground under it, free where the ground
-    under it is known and nothing in the band is occupied, unknown where its ground is not."""
+    under it is known and nothing in the band is occupied, unknown where its ground is not.
+    `obstacle_log`: the log-odds over which a voxel in the band is an obstacle, if not the
+    map's occupancy threshold (the ground is found from the occupied voxels either way;
+    benchmarks/bench_ground.py measures lower ones: docs/design/ground.md)."""
     keys, hits = occupied_voxels(leaves, threshold_log)
     ground = ground_of(keys, resolution, params, weights=hits)
+    if obstacle_log is not None:
+        keys, _ = occupied_voxels(leaves, obstacle_log)
     x0, y0, width, height = footprint(lambda: [(leaves, threshold_log)])  # the map's, as --z-range's grid
     cells = np.full((height, width), UNKNOWN, dtype=np.int8)
     rows, cols = ground.height.shape
