@@ -127,13 +127,13 @@ REAL_SCENES = [
     RealScene("KITTI 00 + movers, drifting poses", "kitti/00", pose_error=True, drift=True),
     RealScene("KITTI 05 + movers, drifting poses", "kitti/05", pose_error=True, drift=True),
     RealScene("KITTI 05, drifting poses", "kitti/05", movers=False, pose_error=True, drift=True),
-    # a KITTI raw PCD dump as drivers write it (no poses; one (0, 0, 0) "no return" a scan; returns
-    # metres under the road), posed by voxtool odometry. Its real traffic is not labelled (a vehicle
-    # 2-3 m to the left drives along with the car): what clean removes of it counts against SA
     # the same KITTI frames posed by voxtool odometry instead of the survey (their real movers labelled)
     RealScene("KITTI 00 + movers, odometry", "kitti/00", odometry=True),
     RealScene("KITTI 05 + movers, odometry", "kitti/05", odometry=True),
     RealScene("KITTI 05, odometry", "kitti/05", movers=False, odometry=True),
+    # a KITTI raw PCD dump as drivers write it (no poses; one (0, 0, 0) "no return" a scan; returns
+    # metres under the road), posed by voxtool odometry. Its real traffic is not labelled (a vehicle
+    # 2-3 m to the left drives along with the car): what clean removes of it counts against SA
     RealScene("Udacity dump + movers, odometry", "udacity", odometry=True),
     RealScene("Udacity dump, odometry (traffic)", "udacity", movers=False, odometry=True),
 ]

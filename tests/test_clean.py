@@ -333,8 +333,9 @@ def test_the_street_scores_high(tmp_path):
     assert cleaned.scan_starts[-1] == truth.shape[0] and len(cleaned.scan_starts) == 16
 
 
-def _posed_with_error(scans_and_truth, seed=0):
-    """Scans (world points, origin, truth) placed by poses with survey-grade error, as a stream."""
+def _stream_of(scans_and_truth, seed=0, pose_error=True):
+    """Scans (world points, origin, truth) as a stream (a fresh one each call) and their truth;
+    placed by poses with survey-grade error unless not `pose_error`."""
     from pathlib import Path
 
     from voxtool.sources import ScanStream
@@ -344,10 +345,26 @@ def _posed_with_error(scans_and_truth, seed=0):
     rng = np.random.default_rng(seed)
     scans, truths = [], []
     for i, (points, origin, truth) in enumerate(scans_and_truth):
-        points, origin = PoseError().apply(points, origin, rng)
+        if pose_error:
+            points, origin = PoseError().apply(points, origin, rng)
         scans.append(Scan(points, origin.astype(np.float32), index=i))
         truths.append(truth)
     return (lambda: ScanStream("generated", Path("scans"), len(scans), iter(list(scans)))), np.concatenate(truths)
+
+
+def _kitti_with_movers(seq, poses=None):
+    """A KITTI sequence's scans (posed by its survey, or by the pose file `poses`) with
+    synthetic.traffic's movers ray-traced into them: (world points, origin, truth) each, the truth
+    the movers' points and SemanticKITTI's moving ones."""
+    from voxtool.synthetic import ground_height, insert_movers, traffic
+
+    scans = list(open_source(seq, SourceOptions(truth=str(seq / "labels"), poses=poses)).scans)
+    times = np.array([s.stamp_ns for s in scans], dtype=np.float64) / 1e9
+    origins = np.array([s.origin for s in scans], dtype=np.float64)
+    boxes = traffic(origins, times - times[0], ground_height(scans[0].points, origins[0]))
+    for s, t in zip(scans, times - times[0]):
+        points, moving = insert_movers(s.points, s.origin, float(t), boxes)
+        yield points, s.origin, moving | s.extra["truth"]
 
 
 def test_a_mover_s_lowest_points_go_with_it_under_pose_error():
@@ -356,7 +373,7 @@ def test_a_mover_s_lowest_points_go_with_it_under_pose_error():
     height) go with their groups far more than when the ground is judged as any surface, and
     no more of the static world goes."""
     lidar = Lidar(beams=64, columns=1024, min_elevation_deg=-24.8, max_elevation_deg=2.0, max_range=60.0)
-    stream, truth = _posed_with_error(((p, o, m) for p, o, _, m in street(10, seed=1, lidar=lidar).scans()))
+    stream, truth = _stream_of(((p, o, m) for p, o, _, m in street(10, seed=1, lidar=lidar).scans()))
     on = clean_stream(stream(), CleanParams(), threads=2, progress=False)
     off = clean_stream(stream(), CleanParams(ground_band=-1.0), threads=2, progress=False)
     lowest = truth & (on.points[:, 2] < 0.3)  # the street's ground is z = 0
@@ -370,20 +387,7 @@ def test_the_road_stays_on_real_car_frames_with_survey_grade_pose_error(kitti_sa
     """KITTI 05 frames 0-9 (120 k points each) with movers ray-traced into them, placed by poses
     with survey-grade error: judged as any surface, the road goes where one scan's rays graze it
     below where another saw it; with the ground apart, the issue's targets: SA >= 99 %, DA >= 92 %."""
-    from voxtool.synthetic import ground_height, insert_movers, traffic
-
-    seq = kitti_sample / "05"
-    scans = list(open_source(seq, SourceOptions(truth=str(seq / "labels"))).scans)
-    times = np.array([s.stamp_ns for s in scans], dtype=np.float64) / 1e9
-    origins = np.array([s.origin for s in scans], dtype=np.float64)
-    boxes = traffic(origins, times - times[0], ground_height(scans[0].points, origins[0]))
-
-    def traced():
-        for s, t in zip(scans, times - times[0]):
-            points, moving = insert_movers(s.points, s.origin, float(t), boxes)
-            yield points, s.origin, moving | s.extra["truth"]
-
-    stream, truth = _posed_with_error(traced(), seed=7)
+    stream, truth = _stream_of(_kitti_with_movers(kitti_sample / "05"), seed=7)
     on = accuracy(clean_stream(stream(), CleanParams(), progress=False).dynamic, truth)
     off = accuracy(clean_stream(stream(), CleanParams(ground_band=-1.0), progress=False).dynamic, truth)
     assert on["SA"] >= 99.0 and on["DA"] >= 92.0, on
@@ -394,27 +398,13 @@ def test_the_targets_hold_on_real_car_frames_posed_by_odometry(kitti_sample, tmp
     """The same KITTI 05 frames posed by `voxtool odometry` (the first scan's frame) instead of
     the survey, movers ray-traced along that path: SA >= 99 %, DA >= 92 % (#59's targets)."""
     pytest.importorskip("kiss_icp")
-    from pathlib import Path
-
     from voxtool.odometry import OdometryParams, estimate_poses, write_pose_file
-    from voxtool.sources import ScanStream
-    from voxtool.sources.scan import Scan
-    from voxtool.synthetic import ground_height, insert_movers, traffic
 
     seq = kitti_sample / "05"
     found = estimate_poses(seq, SourceOptions(), OdometryParams(), progress=False)
     write_pose_file(str(tmp_path / "poses.txt"), found["poses"], found["stamps_ns"])
-    scans = list(open_source(seq, SourceOptions(truth=str(seq / "labels"), poses=str(tmp_path / "poses.txt"))).scans)
-    times = np.array([s.stamp_ns for s in scans], dtype=np.float64) / 1e9 - scans[0].stamp_ns / 1e9
-    origins = np.array([s.origin for s in scans], dtype=np.float64)
-    boxes = traffic(origins, times, ground_height(scans[0].points, origins[0]))
-    traced, truths = [], []
-    for i, (s, t) in enumerate(zip(scans, times)):
-        points, moving = insert_movers(s.points, s.origin, float(t), boxes)
-        traced.append(Scan(points, s.origin, index=i))
-        truths.append(moving | s.extra["truth"])
-    got = accuracy(clean_stream(ScanStream("generated", Path("scans"), len(traced), iter(traced)), CleanParams(),
-                                progress=False).dynamic, np.concatenate(truths))
+    stream, truth = _stream_of(_kitti_with_movers(seq, str(tmp_path / "poses.txt")), pose_error=False)
+    got = accuracy(clean_stream(stream(), CleanParams(), progress=False).dynamic, truth)
     assert got["SA"] >= 99.0 and got["DA"] >= 92.0, got
 
 
