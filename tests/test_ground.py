@@ -91,9 +91,11 @@ def test_a_lower_obstacle_threshold_marks_a_bush_rays_pass_through(tmp_path):
     """A bush whose voxels were hit once and missed three times (log-odds 0.85 - 3 x 0.41 = -0.37)
     is free in the map: no obstacle at the map's threshold, an obstacle at obstacle_log -0.4. A
     voxel missed once and never hit (-0.41) stays free at -0.4, and the ground is the road both ways."""
+    from voxtool.config import SensorModel
     from voxtool.ground import project_above_ground
     from voxtool.io.mapfile import load_map
 
+    hit, miss = SensorModel().hit_log, SensorModel().miss_log
     xs, ys = (a.ravel() for a in np.meshgrid(np.arange(30), np.arange(30), indexing="ij"))
     bush = (xs >= 10) & (xs < 14) & (ys >= 10) & (ys < 14)
     seen_once = (xs >= 20) & (xs < 24) & (ys >= 5) & (ys < 9)
@@ -102,7 +104,7 @@ def test_a_lower_obstacle_threshold_marks_a_bush_rays_pass_through(tmp_path):
     for k in (4, 5):  # 0.8-1.2 m over the road
         keys += [np.c_[xs[bush], ys[bush], np.full(int(bush.sum()), k)],
                  np.c_[xs[seen_once], ys[seen_once], np.full(int(seen_once.sum()), k)]]
-        values += [np.full(int(bush.sum()), 0.847 - 3 * 0.405), np.full(int(seen_once.sum()), -0.405)]
+        values += [np.full(int(bush.sum()), hit + 3 * miss), np.full(int(seen_once.sum()), miss)]
     save_occupied(np.concatenate(keys) + TREE_MAX_VAL, tmp_path / "bush.vxm", np.concatenate(values))
     backend = load_map(tmp_path / "bush.vxm")[0]
     plain = project_above_ground(backend.leaves(), RES, backend.sensor.threshold_log, (0.3, 2.0))
