@@ -43,6 +43,15 @@ gazebo-hall: .fetched/gazebo_tb3/hall/, a ROS 2 bag of the same course a year la
 repository Danivfr/IR2121 (commit 2e8a9c18acd22d6e548bfbeaf6b4e56df95f6afd, Worlds/rosbag2_2025_10_06-18_47_53.zip;
 no licence stated: local tests only): a Gazebo TurtleBot3 driving 42 m round a 12 m x 15 m hall, 1,046
 scans, with the simulator's /tf. With a 3.5 m scanner most of the hall is one wall or none in range.
+gazebo-teleop: .fetched/gazebo_tb3/teleop/, a ROS 2 bag of the same course from the public repository
+hurtaditoo/IR2121 (commit 920bdfdbbda7fd4ed9263e55a9f0cded5f5fb21c,
+Teleoperation/scripts/rosbag2_2023_10_07-02_37_34.zip; no licence stated: local tests only): a Gazebo TurtleBot3
+driven 9.1 m through a house's rooms, 333 scans over 67 s, with the simulator's /tf.
+gazebo-localization: .fetched/gazebo_tb3/localization/, a ROS 2 bag of the same course from the public
+repository mpuigsari/IR2121 (commit 916b75ac105d4d73180fa719ae50abca2e32fb56,
+Worlds/rosbags/localization/rosbag2_2023_10_24-12_51_52.zip; no licence stated: local tests only): a Gazebo
+TurtleBot3 driven 12.4 m through a house while AMCL localised it, 831 scans over 207 s, with the simulator's
+odom -> base_footprint (and AMCL's map -> odom).
 
 e57: .fetched/e57/, the E57 files of the public repository davidcaron/pye57 (commit
 b8d20999f3037c580bf1fe1dcb239c50a8f764ad, MIT), its tests' inputs: pumpAVisualReferenceImage.e57 (one real
@@ -64,6 +73,8 @@ Lambert, WKT and GeoTIFF keys), simple.las and simple.laz (the same 1,065 points
     python scripts/fetch_samples.py tb3 GIT_DIR       # a clone or mirror of samialperen/oko_slam
     python scripts/fetch_samples.py gazebo GIT_DIR    # a clone or mirror of josetamaritfernandez/IR2121
     python scripts/fetch_samples.py gazebo-hall GIT_DIR   # a clone or mirror of Danivfr/IR2121
+    python scripts/fetch_samples.py gazebo-teleop GIT_DIR   # a clone or mirror of hurtaditoo/IR2121
+    python scripts/fetch_samples.py gazebo-localization GIT_DIR   # a clone or mirror of mpuigsari/IR2121
     python scripts/fetch_samples.py e57 GIT_DIR       # a clone or mirror of davidcaron/pye57
     python scripts/fetch_samples.py ouster GIT_DIR    # a clone or mirror of ouster-lidar/ouster-sdk
     python scripts/fetch_samples.py las GIT_DIR       # a clone or mirror of laspy/laspy
@@ -160,6 +171,10 @@ GAZEBO_LOGS = {"driving": "Teleoperation/scripts/rosbag2_2023_10_25-17_10_22.zip
 
 HALL_COMMIT = "2e8a9c18acd22d6e548bfbeaf6b4e56df95f6afd"
 HALL_LOGS = {"hall": "Worlds/rosbag2_2025_10_06-18_47_53.zip"}
+TELEOP_COMMIT = "920bdfdbbda7fd4ed9263e55a9f0cded5f5fb21c"
+TELEOP_LOGS = {"teleop": "Teleoperation/scripts/rosbag2_2023_10_07-02_37_34.zip"}
+LOCALIZATION_COMMIT = "916b75ac105d4d73180fa719ae50abca2e32fb56"
+LOCALIZATION_LOGS = {"localization": "Worlds/rosbags/localization/rosbag2_2023_10_24-12_51_52.zip"}
 
 
 def _course_logs(git_dir: str, commit: str, logs: dict[str, str]) -> None:
@@ -188,6 +203,14 @@ def gazebo(git_dir: str) -> None:
 
 def gazebo_hall(git_dir: str) -> None:
     _course_logs(git_dir, HALL_COMMIT, HALL_LOGS)
+
+
+def gazebo_teleop(git_dir: str) -> None:
+    _course_logs(git_dir, TELEOP_COMMIT, TELEOP_LOGS)
+
+
+def gazebo_localization(git_dir: str) -> None:
+    _course_logs(git_dir, LOCALIZATION_COMMIT, LOCALIZATION_LOGS)
 
 
 def _lay_out(git_dir: str, commit: str, folder: str, names, sample: str) -> None:
@@ -239,4 +262,5 @@ def kitti(git_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3, "gazebo": gazebo, "gazebo-hall": gazebo_hall, "e57": e57, "ouster": ouster, "las": las}[sys.argv[1]](sys.argv[2])
+    {"kitti": kitti, "udacity": udacity, "nebula": nebula, "tb3": tb3, "gazebo": gazebo, "gazebo-hall": gazebo_hall,
+     "gazebo-teleop": gazebo_teleop, "gazebo-localization": gazebo_localization, "e57": e57, "ouster": ouster, "las": las}[sys.argv[1]](sys.argv[2])

@@ -19,16 +19,23 @@ def voxtool(args, env):
     return proc.stdout + proc.stderr
 
 
+def _planar_room(folder):
+    from voxtool.cli.compile import _planar_scans
+
+    _planar_scans(folder / "planar")
+    return folder / "planar"
+
+
 @pytest.mark.sweep  # 25-35 s of compilation from an empty cache: run by .ci/run after the quick suite
 def test_first_runs_after_compile_compile_nothing(tmp_path):
     cache = tmp_path / "numba-cache"
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
     report = json.loads(voxtool(["compile", "--json"], env))
-    assert {"build", "encode --codec cm", "merge", "export .mcap", "clean", "diff"} <= set(report["seconds"])
+    assert {"build", "encode --codec cm", "merge", "export .mcap", "clean", "diff", "odometry 2D"} <= set(report["seconds"])
     saved = {p.name for p in cache.rglob("*.nbi")}
     # the kernels of the build, the cm coder, clean (and its ground) and the hash map are in the cache
     for kernel in ("raycast._make_scan_bricks", "octree.apply_bricks", "cm.", "clean.near_hits_table", "hashmap.",
-                   "ground._min_along_rows"):
+                   "ground._min_along_rows", "grid_matcher._align"):
         assert any(kernel in name for name in saved), kernel
 
     env["NUMBA_DEBUG_CACHE"] = "1"
@@ -38,7 +45,8 @@ def test_first_runs_after_compile_compile_nothing(tmp_path):
                  ["encode", "--sample", "--codec", "cm", "--robot", "r2", "-o", d / "c.mcap"],
                  ["merge", d / "z.mcap", d / "c.mcap", "-o", d / "fused.vxm"],
                  ["export", d / "map.vxm", "-o", d / "map.mcap"],
-                 ["clean", "--sample", "-o", d / "static.pcd"]):
+                 ["clean", "--sample", "-o", d / "static.pcd"],
+                 ["odometry", _planar_room(d), "-o", d / "poses.txt"]):
         log = voxtool(args, env)
         compiled = [line for line in log.splitlines() if "data saved" in line]
         assert not compiled, (args[0], compiled[:3])

@@ -160,8 +160,8 @@ def test_a_simulated_turtlebot3_log_others_recorded(tb3_bag, tmp_path):
                           "--resolution", "0.05", "--json", "--no-progress")
     assert code == 0, err
     built = json.loads(text)
-    # the arena's walls from 538 scans: 849 occupied voxels here; the old fixed 100 m range (1 m
-    # voxels, every scan flagged as too sparse to register) smeared them over 1,319
+    # the arena's walls from 538 scans: 670 occupied voxels here (849 with KISS-ICP's poses); the old
+    # fixed 100 m range (1 m voxels, every scan flagged as too sparse to register) smeared them over 1,319
     assert built["scans"] == 538 and 300 < built["occupied_voxels"] < 1100
 
 
@@ -193,8 +193,8 @@ def test_a_pose_topic_poses_a_gazebo_log_through_its_sensor_mount(gazebo_bags, t
 def test_odometry_on_a_gazebo_log_against_the_simulator_s_truth(gazebo_bags, tmp_path):
     """`voxtool odometry` at its defaults on the driving log (816 scans, 28.4 m along a house's
     corridor by the simulator's /tf): the scanner's 3.5 m range_max, the plane; its path within
-    5 % of the truth's. Its ATE against that truth is 0.38 m here, not the 3 cm #60 asks for
-    (docs/sources.md, "Scans without poses", says what was tried): this guards the figure. The
+    5 % of the truth's. Its ATE against that truth is 0.25 m here (KISS-ICP: 0.38 m), not 3 cm: the
+    corridor's length is not measured at 3.5 m (docs/design/odometry.md): this guards the figure. The
     run is flagged: 77 scans from scan 330 on, where its steps start to go wrong, see only the
     corridor's two walls."""
     pytest.importorskip("kiss_icp")
@@ -215,11 +215,15 @@ def test_odometry_on_a_gazebo_log_against_the_simulator_s_truth(gazebo_bags, tmp
 def test_odometry_of_gazebo_robots_that_stand_still(gazebo_bags, tmp_path):
     """Two Gazebo logs of a robot that never moves: in a house (114 scans) the odometry travels 0 m
     (a standing sensor's jitter is not a path) within 1 cm of the truth; in a nearly empty world
-    (110 scans of about 20 returns) it is flagged as having too little to register."""
-    pytest.importorskip("kiss_icp")
+    (110 scans of about 20 returns) it is flagged as having too little to register. The end's drift
+    is not given as a share of a path it does not have (it was 271,798,055 %)."""
     got, err = _json("odometry", gazebo_bags / "standing", "-o", tmp_path / "p.txt")
     assert err == "" and got["scans"] == 114 and got["path_m"] == 0.0
-    assert got["against_source_poses"]["ate_rmse_m"] < 0.01 and not got["plausibility"]["suspect"]
+    against = got["against_source_poses"]
+    assert against["ate_rmse_m"] < 0.01 and not got["plausibility"]["suspect"]
+    assert against["end_drift_m"] < 0.01 and against["end_drift_percent_of_path"] is None
+    code, text, err = cli("odometry", gazebo_bags / "standing", "-o", tmp_path / "p.txt", "--no-progress")
+    assert code == 0 and "m off (it stood still)" in text and "% of the path" not in text, text
     got, err = _json("odometry", gazebo_bags / "sparse", "-o", tmp_path / "p.txt")
     assert got["plausibility"]["suspect"] and got["plausibility"]["sparse_scans"] == 110
     assert "may have diverged: 110 scans with fewer than 30 points to register" in err
@@ -228,8 +232,8 @@ def test_odometry_of_gazebo_robots_that_stand_still(gazebo_bags, tmp_path):
 def test_odometry_maps_a_webots_room_crisper_than_its_wheel_odometry(gazebo_bags, tmp_path):
     """A Webots TurtleBot3 log (1,189 scans, 258 s in a furnished room) whose /tf is the wheels'
     odometry: its map smears the room's walls as the wheels' heading drifts. The map from
-    `voxtool odometry`'s poses holds the same walls in half the occupied voxels (525 against 1,113
-    at 0.1 m here; 1,281 against 1,942 at 5 cm)."""
+    `voxtool odometry`'s poses holds the same walls in half the occupied voxels (516 against 1,113
+    at 0.1 m here; 1,260 against 1,942 at 5 cm; KISS-ICP's poses 525 and 1,281)."""
     pytest.importorskip("kiss_icp")
     bag = gazebo_bags / "webots"
     got, err = _json("odometry", bag, "-o", tmp_path / "p.txt")
@@ -239,15 +243,15 @@ def test_odometry_maps_a_webots_room_crisper_than_its_wheel_odometry(gazebo_bags
     assert by_odometry["scans"] == by_wheels["scans"] == 1189
     assert by_odometry["occupied_voxels"] < 0.6 * by_wheels["occupied_voxels"], (by_odometry, by_wheels)
     # nothing moves in the simulated room: with the odometry's poses clean removes almost nothing
-    # (7 of 324,275 points here; 35 % with the drifting wheel odometry, docs/cleaning.md)
+    # (66 of 324,275 points here, 0.02 %; 35 % with the drifting wheel odometry, docs/cleaning.md)
     cleaned, _ = _json("clean", bag, "--poses", tmp_path / "p.txt", "-o", tmp_path / "static.pcd")
-    assert cleaned["planar"] and cleaned["points_removed"] < 1e-4 * cleaned["points_in"], cleaned
+    assert cleaned["planar"] and cleaned["points_removed"] < 1e-3 * cleaned["points_in"], cleaned
 
 
 def test_odometry_round_a_gazebo_hall_is_flagged_where_it_cannot_see(gazebo_bags, tmp_path):
     """A course's Gazebo log driving 42 m round a 12 m x 15 m hall with a 3.5 m scanner: 41 % of
     its scans see one wall or a corner-less stretch, and the odometry misses most of the way
-    along them (ATE 3.7 m against the simulator's /tf). It used to report success; it is flagged."""
+    along them (ATE 3.8 m against the simulator's /tf; KISS-ICP 3.7 m). It used to report success; it is flagged."""
     pytest.importorskip("kiss_icp")
     bag = gazebo_bags / "hall"
     if not (bag / "metadata.yaml").is_file():
@@ -259,3 +263,44 @@ def test_odometry_round_a_gazebo_hall_is_flagged_where_it_cannot_see(gazebo_bags
     assert check["suspect"] and 0.3 * got["scans"] < check["one_direction_scans"] < 0.5 * got["scans"], check
     assert "fix the motion in one direction only" in err
     assert got["against_source_poses"]["ate_rmse_m"] > 1.0  # the flag is warranted
+
+
+@pytest.mark.parametrize("log, sample, ate_within", [("teleop", "gazebo-teleop", 0.03),
+                                                     ("localization", "gazebo-localization", 0.03)])
+def test_odometry_at_its_defaults_within_3_cm_of_the_simulator_on_gazebo_logs(gazebo_bags, tmp_path, log, sample,
+                                                                              ate_within):
+    """Two more Gazebo TurtleBot3 logs of the course, recorded by others (9.1 m through a house's
+    rooms; 12.4 m under AMCL): `voxtool odometry` at its defaults registers the 2D scans to a grid
+    of the scans before it and ends within 3 cm ATE of the simulator's odom -> base_scan (1.5 and
+    1.1 cm here). KISS-ICP's point-to-point local map on the same scans is decimetres off (0.14 and
+    0.15 m): the independent truth tells the two apart."""
+    import warnings
+
+    from voxtool.errors import VoxtoolWarning
+    from voxtool.odometry import OdometryParams, estimate_poses, rigid_fit
+    from voxtool.sources import SourceOptions, open_source
+
+    bag = gazebo_bags / log
+    if not (bag / "metadata.yaml").is_file():
+        from conftest import skip_unfetched
+
+        skip_unfetched(f"the Gazebo {log} bag is absent", sample)
+    truth = np.array([s.origin for s in open_source(bag, SourceOptions(world_frame="odom")).scans], np.float64)
+
+    def ate(matcher):
+        with warnings.catch_warnings():  # the teleop log's corridor stretches are flagged (tested above): not news here
+            warnings.simplefilter("ignore", VoxtoolWarning)
+            result = estimate_poses(bag, SourceOptions(), OdometryParams(matcher=matcher), progress=False)
+        ours = result["poses"][:, :3, 3]
+        assert ours.shape == truth.shape
+        r, t = rigid_fit(ours, truth)
+        return float(np.sqrt(np.mean(np.sum((ours @ r.T + t - truth) ** 2, axis=1)))), result["figures"]
+
+    grid, figures = ate(None)
+    assert figures["params"]["matcher"] == "grid" and figures["params"]["voxel_size"] == pytest.approx(0.025)
+    assert grid < ate_within, grid
+    travelled = np.linalg.norm(np.diff(truth[:, :2], axis=0), axis=1).sum()
+    assert abs(figures["path_m"] - travelled) < 0.08 * travelled, (figures["path_m"], travelled)
+    pytest.importorskip("kiss_icp")
+    kiss, _ = ate("kiss-icp")
+    assert kiss > 3 * grid, (kiss, grid)

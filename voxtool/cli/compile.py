@@ -53,7 +53,24 @@ def _steps(d: Path) -> list[tuple[str, list[str]]]:
         ("decode", ["decode", str(d / "zstd.mcap"), "--json"]),
         ("stats .mcap", ["stats", str(d / "zstd.mcap"), "--json"]),
         ("clean", ["clean", *one, "-o", str(d / "static.pcd")]),
+        ("odometry 2D", ["odometry", str(d / "planar"), "-o", str(d / "planar_poses.txt")]),
     ]
+
+
+def _planar_scans(folder: Path) -> None:
+    """Two 2D scans (z 0) of a 4 m x 3 m room's walls, as PCD files: `odometry 2D`'s input (the
+    shipped sample is 3D), enough points for the grid matcher to align the second to the first."""
+    import numpy as np
+
+    from voxtool.io.export import pcd_header, pcd_rows
+
+    folder.mkdir(exist_ok=True)
+    t = np.arange(0.0, 1.0, 0.0125)
+    room = np.concatenate([np.c_[4 * t - 2, np.full_like(t, -1.5)], np.c_[np.full_like(t, 2.0), 3 * t - 1.5],
+                           np.c_[2 - 4 * t, np.full_like(t, 1.5)], np.c_[np.full_like(t, -2.0), 1.5 - 3 * t]])
+    for i, shift in enumerate((0.0, 0.05)):
+        points = np.c_[room[:, 0] - shift, room[:, 1], np.zeros(len(room))].astype(np.float32)
+        (folder / f"{i}.pcd").write_bytes(pcd_header(len(points), False) + pcd_rows(points, None))
 
 
 # The steps in two groups that share few kernels and no files, one process each: the hash map's kernels (half
@@ -62,7 +79,7 @@ def _steps(d: Path) -> list[tuple[str, list[str]]]:
 _GROUPS = (
     ("build", "build --stop 1", "build --decay", "build --backend octocache", "build --backend tiny",
      "stats", "query", "export .bt", "build .bt", "export .ply", "export .pcd", "export .png",
-     "export .mcap", "export .pgm", "eval", "clean", "diff"),
+     "export .mcap", "export .pgm", "eval", "clean", "diff", "odometry 2D"),
     ("build --backend hashmap", "encode", "encode --codec cm", "merge", "decode", "stats .mcap"),
 )
 
@@ -72,6 +89,8 @@ def run_steps(names: list[str], tmp: str) -> dict:
     from voxtool.cli import main  # the group this command belongs to: imported when it runs, not before
 
     steps = dict(_steps(Path(tmp)))
+    if "odometry 2D" in names:
+        _planar_scans(Path(tmp) / "planar")
     times: dict[str, float] = {}
     for name in names:
         args = [a.replace("SAMPLE/", f"{SAMPLE_DIR}/") for a in steps[name]]

@@ -1,4 +1,5 @@
-"""`voxtool odometry`: a pose file for scans that have no poses (KISS-ICP LiDAR odometry)."""
+"""`voxtool odometry`: a pose file for scans that have no poses (LiDAR odometry: a grid matcher for 2D
+scans, KISS-ICP for 3D ones)."""
 
 from __future__ import annotations
 
@@ -23,7 +24,11 @@ from voxtool.cli.common import dropped_text, ego_box_option, emit, handle_errors
 @click.option("--min-range", default=0.0, show_default=True, type=float,
               help="Points nearer than this (metres: the vehicle itself) are not registered.")
 @click.option("--voxel-size", default=None, type=float,
-              help="KISS-ICP's local map voxel in metres (default: max range / 100, its own default).")
+              help="The local map's cell in metres: KISS-ICP's voxel (default: max range / 100, its own default); "
+                   "the grid matcher's finest cell (default: max range / 140, 2.5 cm for a 3.5 m scanner).")
+@click.option("--matcher", type=click.Choice(["grid", "kiss-icp"]), default=None,
+              help="grid: 2D scans aligned to an occupancy grid of the scans before them (Hector SLAM's matcher); "
+                   "kiss-icp: KISS-ICP's point-to-point local map. Default: grid for 2D scans, KISS-ICP for 3D ones.")
 @click.option("--topic", help="MCAP/bag PointCloud2 topic (default: the only one).")
 @ego_box_option()
 @click.option("--bad-scans", type=click.Choice(["fail", "skip"]), default="fail", show_default=True,
@@ -31,15 +36,16 @@ from voxtool.cli.common import dropped_text, ego_box_option, emit, handle_errors
 @click.option("--json", "as_json", is_flag=True, help="Print figures and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def odometry(source, sample, output, max_range, planar, min_range, voxel_size, topic, ego_box, bad_scans, as_json,
-             progress):
-    """Estimate the sensor's pose for every scan of SOURCE by LiDAR odometry (KISS-ICP), and write
-    them as a pose file that `build`, `clean` and `eval` take with --poses.
+def odometry(source, sample, output, max_range, planar, min_range, voxel_size, matcher, topic, ego_box, bad_scans,
+             as_json, progress):
+    """Estimate the sensor's pose for every scan of SOURCE by LiDAR odometry, and write them as a
+    pose file that `build`, `clean` and `eval` take with --poses.
 
     For scans that carry no poses: a driver's PCD dump, a dataset sample, a KITTI sequence without
-    poses.txt. The poses are in the first scan's sensor frame. Odometry drifts (about 1 % of the
-    distance on KITTI); a map from it is locally consistent, not surveyed. Needs the optional
-    extra: pip install 'voxtool-lidar[odometry]'.
+    poses.txt, a 2D LaserScan log. The poses are in the first scan's sensor frame. Odometry drifts
+    (about 1 % of the distance on KITTI); a map from it is locally consistent, not surveyed. 3D
+    scans are registered by KISS-ICP, an optional extra: pip install 'voxtool-lidar[odometry]'; 2D
+    scans by a grid matcher that needs nothing more (--matcher kiss-icp for KISS-ICP).
 
     \b
     Examples:
@@ -57,7 +63,8 @@ def odometry(source, sample, output, max_range, planar, min_range, voxel_size, t
     from voxtool.atomic import check_writable
 
     check_writable(output)
-    params = OdometryParams(max_range=max_range, min_range=min_range, voxel_size=voxel_size, planar=planar)
+    params = OdometryParams(max_range=max_range, min_range=min_range, voxel_size=voxel_size, planar=planar,
+                            matcher=matcher)
     result = estimate_poses(source, SourceOptions(topic=topic, bad_scans=bad_scans,
                                                  ego_box=parse_box(ego_box, "--ego-box", "in the sensor's frame")),
                             params, progress)
@@ -67,13 +74,16 @@ def odometry(source, sample, output, max_range, planar, min_range, voxel_size, t
     rows = [("scans", f"{figures['scans']:,} ({figures['points']:,} points registered; {dropped_text(figures)})"),
             ("path", f"{figures['path_m']:.2f} m travelled (first scan's frame)"),
             ("registered", f"within {figures['params']['max_range']:g} m ({figures['params']['max_range_from']}), "
-                           f"{figures['params']['voxel_size']:g} m voxels"
-                           + (", in the plane (2D scans)" if figures["params"]["planar"] else "")),
+                           + (f"to a grid of {figures['params']['voxel_size']:g} m cells (2D scans, in the plane)"
+                              if figures["params"]["matcher"] == "grid" else
+                              f"by KISS-ICP, {figures['params']['voxel_size']:g} m voxels"
+                              + (", in the plane" if figures["params"]["planar"] else ""))),
             ("format", "TUM (t x y z qx qy qz qw)" if kind == "tum" else "KITTI rows (the scans have no times)"),
             ("time", f"{t['total']:.2f} s, {t['per_scan_ms']:.1f} ms a scan")]
     a = figures.get("against_source_poses")
     if a:
         rows.insert(2, ("vs the source's poses", f"ATE {a['ate_rmse_m']:.3f} m RMSE (max {a['ate_max_m']:.3f} m) after a "
                                                  f"rigid fit; the end {a['end_drift_m']:.3f} m off "
-                                                 f"({a['end_drift_percent_of_path']:.2f} % of the path)"))
+                                                 + (f"({a['end_drift_percent_of_path']:.2f} % of the path)"
+                                                    if a["end_drift_percent_of_path"] is not None else "(it stood still)")))
     emit(figures, as_json, rows, written=output)
