@@ -596,17 +596,19 @@ def test_johnny5_odometry_at_its_defaults_maps_the_walls_gmapping_has(shared_dat
 
 COURSE_LOGS = {"driving": (816, "base_scan", "map"), "standing": (114, "base_scan", "odom"),
                "sparse": (110, "base_scan", "odom"), "webots": (1189, "LDS-01", "odom"),
-               "hall": (1046, "base_scan", "map")}
+               "hall": (1046, "base_scan", "map"), "teleop": (333, "base_scan", "map"),
+               "localization": (831, "base_scan", "map")}
 
 
 def test_a_course_s_simulated_logs_are_described_and_build(gazebo_bags, tmp_path):
     """The corpus grown by a course's simulated TurtleBot3 logs (ROS 2 sqlite bags with /clock,
-    Gazebo's and Webots' /tf trees, scripts/fetch_samples.py gazebo and gazebo-hall): `info`
+    Gazebo's and Webots' /tf trees, scripts/fetch_samples.py gazebo, gazebo-hall, gazebo-teleop and
+    gazebo-localization): `info`
     names each one's scans, scan frame and the /tf root that poses them; the short ones build
     every scan with no warning."""
     for log, (scans, frame, root) in COURSE_LOGS.items():
         if not (gazebo_bags / log / "metadata.yaml").is_file():
-            continue  # the hall comes from a second repository
+            continue  # the hall, teleop and localization logs come from other repositories
         code, text, err = cli("info", gazebo_bags / log, "--json")
         assert code == 0 and err == "", (log, err)
         got = json.loads(text)
