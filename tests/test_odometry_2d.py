@@ -304,3 +304,12 @@ def test_odometry_at_its_defaults_within_3_cm_of_the_simulator_on_gazebo_logs(ga
     pytest.importorskip("kiss_icp")
     kiss, _ = ate("kiss-icp")
     assert kiss > 3 * grid, (kiss, grid)
+
+
+def test_the_grid_matcher_refuses_3d_scans_in_one_line(tmp_path):
+    """The grid matcher registers 2D scans: asked for on the shipped sample's 3D scans it says so and
+    names the default, writing nothing."""
+    code, _, err = cli("odometry", "--sample", "--matcher", "grid", "-o", tmp_path / "p.txt", "--no-progress")
+    assert code == 2 and err.count("\n") == 1, err
+    assert "--matcher grid registers 2D scans" in err and "KISS-ICP" in err
+    assert not (tmp_path / "p.txt").exists()

@@ -98,7 +98,8 @@ def _align(grid, cell, points, x, y, yaw, iterations, weak):
         step = np.zeros(3)
         for k in range(3):
             if w[k] > weak * top:
-                step += v[:, k] * (v[:, k] @ b) / w[k]
+                along = v[0, k] * b[0] + v[1, k] * b[1] + v[2, k] * b[2]
+                step += v[:, k] * (along / w[k])
         x, y, yaw = x + step[0], y + step[1], yaw + step[2]
         if abs(step[0]) < 1e-5 and abs(step[1]) < 1e-5 and abs(step[2]) < 1e-5:
             break
@@ -128,7 +129,9 @@ class GridMatcher:
         coarse = self.cells[0]
         self.side = int(np.ceil(WINDOW_RANGES * max_range / coarse)) * coarse  # whole coarse cells
         self.grids = [np.zeros((int(round(self.side / c)),) * 2, np.float32) for c in self.cells]
-        self.corner = np.array([-self.side / 2, -self.side / 2])  # world position of the grids' corner
+        # the grids' corner (world position), on whole coarse cells, so that moving the window shifts
+        # every level by whole cells
+        self.corner = np.full(2, np.floor(-self.side / 2 / coarse) * coarse)
         self.pose = np.zeros(3)
         self.last_delta = np.zeros(3)  # the last step, in the robot's frame (the constant-velocity guess)
         self.scans = 0
