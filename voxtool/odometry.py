@@ -270,7 +270,10 @@ def estimate_poses(source: str | os.PathLike, options: SourceOptions, params: Od
         raise ParameterError(f"{source}: {len(skipped)} scans could not be read (first: {skipped[0]['reason']}); "
                              "a pose file needs a pose for every scan")
     positions = np.array([m[:3, 3] for m in poses])
-    path_m = path_length(positions, voxel_size / 2.0)
+    # a standing sensor's registration jitter is no path: a move counts once the position is half a
+    # KISS-ICP voxel, or a whole grid cell (range / 140, finer than the voxel), from the last counted one
+    # (a standing 12 m RPLidar's grid poses wander 3-6 cm: 0.23 m of path at half a cell, 0 at one)
+    path_m = path_length(positions, voxel_size if matcher == "grid" else voxel_size / 2.0)
     check = plausibility(positions, np.array(stamps, dtype=np.int64), np.array(registered), planar, max_range,
                          np.array(support) if planar else None)
     if check["suspect"]:
