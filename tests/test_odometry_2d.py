@@ -313,3 +313,15 @@ def test_the_grid_matcher_refuses_3d_scans_in_one_line(tmp_path):
     assert code == 2 and err.count("\n") == 1, err
     assert "--matcher grid registers 2D scans" in err and "KISS-ICP" in err
     assert not (tmp_path / "p.txt").exists()
+
+
+def test_a_grid_cell_too_small_for_memory_is_refused_in_one_line(room_bag, tmp_path):
+    """--voxel-size 1 mm for a 3.5 m scanner would need a 28,000-cell-square grid (3 GB): refused,
+    naming the smallest cell that fits, before any pose is written."""
+    path, _ = room_bag
+    code, _, err = cli("odometry", path, "--voxel-size", "0.001", "-o", tmp_path / "p.txt", "--no-progress")
+    assert code == 2 and err.count("\n") == 1, err
+    assert "--voxel-size 0.001" in err and "28,000 x 28,000 cells" in err and "give at least 0.00684 m" in err
+    assert not (tmp_path / "p.txt").exists()
+    code, _, err = cli("odometry", path, "--voxel-size", "0.007", "-o", tmp_path / "p.txt", "--no-progress")
+    assert code == 0 and (tmp_path / "p.txt").exists(), err

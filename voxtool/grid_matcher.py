@@ -17,11 +17,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from voxtool.errors import ParameterError
+
 CELLS_PER_RANGE = 140  # the finest cell: range / 140 (2.5 cm for a 3.5 m scanner whose 1-degree beams lie 6 cm apart)
 LEVELS = 3  # cells of 4, 2 and 1 finest cells: the coarse ones widen the basin, the fine one sets the pose
 ITERATIONS = 20  # Gauss-Newton steps a level at most (it stops once a step is under 10 um)
 WEAK = 0.01  # a direction whose eigenvalue is under this share of the largest keeps the guess
 WINDOW_RANGES = 8  # the grid's side, in ranges; recentred on the robot when it nears an edge
+MAX_CELLS_A_SIDE = 4096  # the finest grid's side at most (64 MiB of float32): a --voxel-size far under the default
 
 
 @njit(cache=True, nogil=True)
@@ -128,6 +131,11 @@ class GridMatcher:
         self.cells = [self.finest * 2 ** k for k in reversed(range(LEVELS))]  # coarse first
         coarse = self.cells[0]
         self.side = int(np.ceil(WINDOW_RANGES * max_range / coarse)) * coarse  # whole coarse cells
+        if self.side / self.finest > MAX_CELLS_A_SIDE:
+            raise ParameterError(f"--voxel-size {self.finest:g}: a grid cell that small for a {max_range:g} m range "
+                                 f"needs {self.side / self.finest:,.0f} x {self.side / self.finest:,.0f} cells; give at "
+                                 f"least {WINDOW_RANGES * max_range / MAX_CELLS_A_SIDE:.3g} m (default: range / "
+                                 f"{CELLS_PER_RANGE}, {max_range / CELLS_PER_RANGE:.3g} m)")
         self.grids = [np.zeros((int(round(self.side / c)),) * 2, np.float32) for c in self.cells]
         # the grids' corner (world position), on whole coarse cells, so that moving the window shifts
         # every level by whole cells
