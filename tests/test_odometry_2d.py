@@ -325,3 +325,23 @@ def test_a_grid_cell_too_small_for_memory_is_refused_in_one_line(room_bag, tmp_p
     assert not (tmp_path / "p.txt").exists()
     code, _, err = cli("odometry", path, "--voxel-size", "0.007", "-o", tmp_path / "p.txt", "--no-progress")
     assert code == 0 and (tmp_path / "p.txt").exists(), err
+
+
+def test_odometry_is_compared_with_the_log_s_poses_in_a_named_frame(gazebo_bags, tmp_path):
+    """The AMCL log: build poses its scans in 'map', which AMCL's transform reaches for 687 of the
+    831 scans, so by default there is nothing to compare with; --world-frame odom compares with the simulator's odom
+    poses (1.1 cm ATE). A named frame that cannot pose every scan says why on one warning line."""
+    bag = gazebo_bags / "localization"
+    if not (bag / "metadata.yaml").is_file():
+        from conftest import skip_unfetched
+
+        skip_unfetched("the Gazebo localization bag is absent", "gazebo-localization")
+    got, err = _json("odometry", bag, "-o", tmp_path / "p.txt")
+    assert got["against_source_poses"] is None and err == "", err
+    got, err = _json("odometry", bag, "-o", tmp_path / "p.txt", "--world-frame", "odom")
+    assert got["against_source_poses"]["ate_rmse_m"] < 0.03 and err == "", err
+    for frame, says in (("map", "in --world-frame map: 687 of its 831 scans have a pose in it"),
+                        ("nowhere", "in --world-frame nowhere: 'nowhere' is not a frame of its /tf (its frames: ")):
+        got, err = _json("odometry", bag, "-o", tmp_path / "p.txt", "--world-frame", frame)
+        assert got["against_source_poses"] is None and err.count("\n") == 1 and says in err, err
+        assert "voxtool odometry" not in err  # no advice to run itself

@@ -326,8 +326,17 @@ def against_source_poses(source, options: SourceOptions, estimated: np.ndarray, 
             warnings.simplefilter("ignore", VoxtoolWarning)
             truth = np.array([scan.origin for scan in open_source(source, replace(options, origin=None)).scans],
                              dtype=np.float64)
-    except SourceError:
+    except SourceError as error:
+        if options.world_frame is not None:  # asked for by name: say why there is no comparison (not how to build)
+            why = str(error).removeprefix(f"{source}: ").split("; or ")[0]
+            warnings.warn(f"{source}: the odometry is not compared with the log's poses in --world-frame "
+                          f"{options.world_frame}: {why.replace(f'--world-frame {options.world_frame} ', repr(options.world_frame) + ' ', 1)}",
+                          VoxtoolWarning, stacklevel=3)
         return None  # the source cannot pose its scans (what odometry is for)
+    if truth.shape[0] != estimated.shape[0] and options.world_frame is not None:
+        warnings.warn(f"{source}: the odometry is not compared with the log's poses in --world-frame "
+                      f"{options.world_frame}: {truth.shape[0]} of its {estimated.shape[0]} scans have a pose in it",
+                      VoxtoolWarning, stacklevel=3)
     if truth.shape[0] != estimated.shape[0] or truth.shape[0] < 3 or np.ptp(truth, axis=0).max() < 1e-6:
         return None  # no poses (every scan at the origin), or not one per scan
     r, t = rigid_fit(estimated, truth)

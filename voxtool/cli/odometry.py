@@ -30,14 +30,18 @@ from voxtool.cli.common import dropped_text, ego_box_option, emit, handle_errors
               help="grid: 2D scans aligned to an occupancy grid of the scans before them (Hector SLAM's matcher); "
                    "kiss-icp: KISS-ICP's point-to-point local map. Default: grid for 2D scans, KISS-ICP for 3D ones.")
 @click.option("--topic", help="MCAP/bag PointCloud2 topic (default: the only one).")
+@click.option("--world-frame", default=None,
+              help="A log's /tf frame to compare the odometry with (--json's against_source_poses: ATE and drift "
+                   "against the log's own poses in that frame; default: the frame build would pose the scans in). "
+                   "The scans are registered in their sensor frame either way.")
 @ego_box_option()
 @click.option("--bad-scans", type=click.Choice(["fail", "skip"]), default="fail", show_default=True,
               help="skip: read a truncated bag record by record (every scan file must still be readable).")
 @click.option("--json", "as_json", is_flag=True, help="Print figures and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def odometry(source, sample, output, max_range, planar, min_range, voxel_size, matcher, topic, ego_box, bad_scans,
-             as_json, progress):
+def odometry(source, sample, output, max_range, planar, min_range, voxel_size, matcher, topic, world_frame, ego_box,
+             bad_scans, as_json, progress):
     """Estimate the sensor's pose for every scan of SOURCE by LiDAR odometry, and write them as a
     pose file that `build`, `clean` and `eval` take with --poses.
 
@@ -65,7 +69,7 @@ def odometry(source, sample, output, max_range, planar, min_range, voxel_size, m
     check_writable(output)
     params = OdometryParams(max_range=max_range, min_range=min_range, voxel_size=voxel_size, planar=planar,
                             matcher=matcher)
-    result = estimate_poses(source, SourceOptions(topic=topic, bad_scans=bad_scans,
+    result = estimate_poses(source, SourceOptions(topic=topic, bad_scans=bad_scans, world_frame=world_frame,
                                                  ego_box=parse_box(ego_box, "--ego-box", "in the sensor's frame")),
                             params, progress)
     kind = write_pose_file(output, result["poses"], result["stamps_ns"])
