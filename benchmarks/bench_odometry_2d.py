@@ -24,16 +24,9 @@ FETCHED = Path(__file__).resolve().parents[1] / ".fetched" / "gazebo_tb3"
 MOVING = ("driving", "hall", "teleop", "localization")
 
 
-def ate(poses: np.ndarray, truth: np.ndarray) -> float:
-    from voxtool.odometry import rigid_fit
-
-    r, t = rigid_fit(poses, truth)
-    return float(np.sqrt(np.mean(np.sum((poses @ r.T + t - truth) ** 2, axis=1))))
-
-
 def measure(log: Path) -> dict:
     from voxtool.errors import VoxtoolWarning
-    from voxtool.odometry import OdometryParams, estimate_poses
+    from voxtool.odometry import OdometryParams, ate_rmse, estimate_poses
     from voxtool.sources import SourceOptions, open_source
 
     truth = np.array([s.origin for s in open_source(log, SourceOptions(world_frame="odom")).scans], np.float64)
@@ -46,7 +39,7 @@ def measure(log: Path) -> dict:
             result = estimate_poses(log, SourceOptions(), OdometryParams(matcher=matcher), progress=False)
             seconds = time.perf_counter() - t0
         check = result["figures"]["plausibility"]
-        row[matcher] = {"ate_m": round(ate(result["poses"][:, :3, 3], truth), 4), "flagged": bool(check["suspect"]),
+        row[matcher] = {"ate_m": round(ate_rmse(result["poses"][:, :3, 3], truth), 4), "flagged": bool(check["suspect"]),
                         "one_direction_scans": check.get("one_direction_scans"),
                         "ms_a_scan": round(1000 * seconds / len(truth), 2)}
     return row

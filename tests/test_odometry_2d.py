@@ -82,12 +82,9 @@ def room_bag(tmp_path_factory):
 
 
 def _ate(result, truth) -> float:
-    from voxtool.odometry import rigid_fit
+    from voxtool.odometry import ate_rmse
 
-    ours = result["poses"][:, :3, 3]
-    true = np.c_[truth[:, :2], np.zeros(len(truth))]
-    r, t = rigid_fit(ours, true)
-    return float(np.sqrt(np.mean(np.sum((ours @ r.T + t - true) ** 2, axis=1))))
+    return ate_rmse(result["poses"][:, :3, 3], np.c_[truth[:, :2], np.zeros(len(truth))])
 
 
 def test_odometry_at_its_defaults_follows_a_2d_scanner_within_3_cm(room_bag):
@@ -277,7 +274,7 @@ def test_odometry_at_its_defaults_within_3_cm_of_the_simulator_on_gazebo_logs(ga
     import warnings
 
     from voxtool.errors import VoxtoolWarning
-    from voxtool.odometry import OdometryParams, estimate_poses, rigid_fit
+    from voxtool.odometry import OdometryParams, ate_rmse, estimate_poses
     from voxtool.sources import SourceOptions, open_source
 
     bag = gazebo_bags / log
@@ -293,8 +290,7 @@ def test_odometry_at_its_defaults_within_3_cm_of_the_simulator_on_gazebo_logs(ga
             result = estimate_poses(bag, SourceOptions(), OdometryParams(matcher=matcher), progress=False)
         ours = result["poses"][:, :3, 3]
         assert ours.shape == truth.shape
-        r, t = rigid_fit(ours, truth)
-        return float(np.sqrt(np.mean(np.sum((ours @ r.T + t - truth) ** 2, axis=1)))), result["figures"]
+        return ate_rmse(ours, truth), result["figures"]
 
     grid, figures = ate(None)
     assert figures["params"]["matcher"] == "grid" and figures["params"]["voxel_size"] == pytest.approx(0.025)

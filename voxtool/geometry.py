@@ -71,6 +71,14 @@ class Pose:
         return (pts @ self.rotation.T + self.translation).astype(np.float32)
 
 
+def planar_pose(x: float, y: float, yaw: float) -> np.ndarray:
+    """The 4 x 4 pose of a position (x, y) and heading `yaw` in the plane (z, roll and pitch 0)."""
+    out = np.eye(4)
+    out[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    out[:2, 3] = x, y
+    return out
+
+
 def interpolate_pose(t: float, t0: float, p0: Pose, t1: float, p1: Pose) -> Pose:
     """Linear translation and slerp rotation between two stamped poses."""
     if t1 == t0:

@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from voxtool.errors import ParameterError
+from voxtool.geometry import planar_pose
 
 CELLS_PER_RANGE = 140  # the finest cell: range / 140 (2.5 cm for a 3.5 m scanner whose 1-degree beams lie 6 cm apart)
 LEVELS = 3  # cells of 4, 2 and 1 finest cells: the coarse ones widen the basin, the fine one sets the pose
@@ -197,8 +198,4 @@ class GridMatcher:
 
     def pose_matrix(self) -> np.ndarray:
         """The last scan's pose as a 4 x 4 matrix (z, roll and pitch 0)."""
-        x, y, yaw = self.pose
-        out = np.eye(4)
-        out[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-        out[:2, 3] = x, y
-        return out
+        return planar_pose(*self.pose)

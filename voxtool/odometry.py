@@ -24,6 +24,7 @@ import numpy as np
 
 from voxtool import DISTRIBUTION
 from voxtool.errors import ParameterError, SourceError
+from voxtool.geometry import planar_pose
 from voxtool.grid_matcher import CELLS_PER_RANGE, GridMatcher
 from voxtool.sources import SourceOptions, detect_kind, open_source
 from voxtool.sources.scan import add_drop_counts
@@ -123,11 +124,7 @@ class _KissOdometry:
 
 def in_plane(pose: np.ndarray) -> np.ndarray:
     """A 4x4 pose projected to the plane: its yaw and x, y kept; z, roll and pitch 0."""
-    yaw = np.arctan2(pose[1, 0], pose[0, 0])
-    out = np.eye(4)
-    out[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-    out[:2, 3] = pose[:2, 3]
-    return out
+    return planar_pose(pose[0, 3], pose[1, 3], np.arctan2(pose[1, 0], pose[0, 0]))
 
 
 def sensor_range(scans: list) -> float:
@@ -313,6 +310,18 @@ def rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return r, cb - r @ ca
 
 
+def aligned_errors(estimated: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each estimated position's distance from the truth's after one rigid fit of the whole
+    trajectory onto the truth (rigid_fit), and the fit's rotation."""
+    r, t = rigid_fit(estimated, truth)
+    return np.linalg.norm(estimated @ r.T + t - truth, axis=1), r
+
+
+def ate_rmse(estimated: np.ndarray, truth: np.ndarray) -> float:
+    """A trajectory's absolute error (ATE RMSE, metres) against the truth, after one rigid fit."""
+    return float(np.sqrt(np.mean(aligned_errors(estimated, truth)[0] ** 2)))
+
+
 def against_source_poses(source, options: SourceOptions, estimated: np.ndarray, path_m: float) -> dict | None:
     """How far the odometry's sensor positions are from the source's own poses, where it has
     them (a KITTI poses.txt, PCD VIEWPOINTs, a pose file): ATE RMSE and largest error after a
@@ -321,26 +330,27 @@ def against_source_poses(source, options: SourceOptions, estimated: np.ndarray, 
 
     from voxtool.errors import VoxtoolWarning
 
+    frame = options.world_frame
+
+    def not_compared(why: str) -> None:
+        warnings.warn(f"{source}: the odometry is not compared with the log's poses in --world-frame {frame}: {why}",
+                      VoxtoolWarning, stacklevel=4)
+
     try:
         with warnings.catch_warnings():  # what reading its poses says (no poses: run odometry) is not news here
             warnings.simplefilter("ignore", VoxtoolWarning)
             truth = np.array([scan.origin for scan in open_source(source, replace(options, origin=None)).scans],
                              dtype=np.float64)
     except SourceError as error:
-        if options.world_frame is not None:  # asked for by name: say why there is no comparison (not how to build)
+        if frame is not None:  # asked for by name: say why there is no comparison (not how to build)
             why = str(error).removeprefix(f"{source}: ").split("; or ")[0]
-            warnings.warn(f"{source}: the odometry is not compared with the log's poses in --world-frame "
-                          f"{options.world_frame}: {why.replace(f'--world-frame {options.world_frame} ', repr(options.world_frame) + ' ', 1)}",
-                          VoxtoolWarning, stacklevel=3)
+            not_compared(why.replace(f"--world-frame {frame} ", f"{frame!r} ", 1))
         return None  # the source cannot pose its scans (what odometry is for)
-    if truth.shape[0] != estimated.shape[0] and options.world_frame is not None:
-        warnings.warn(f"{source}: the odometry is not compared with the log's poses in --world-frame "
-                      f"{options.world_frame}: {truth.shape[0]} of its {estimated.shape[0]} scans have a pose in it",
-                      VoxtoolWarning, stacklevel=3)
+    if truth.shape[0] != estimated.shape[0] and frame is not None:
+        not_compared(f"{truth.shape[0]} of its {estimated.shape[0]} scans have a pose in it")
     if truth.shape[0] != estimated.shape[0] or truth.shape[0] < 3 or np.ptp(truth, axis=0).max() < 1e-6:
         return None  # no poses (every scan at the origin), or not one per scan
-    r, t = rigid_fit(estimated, truth)
-    error = np.linalg.norm(estimated @ r.T + t - truth, axis=1)
+    error, r = aligned_errors(estimated, truth)
     # the end's drift with the start pinned: both trajectories from their first position
     end = np.linalg.norm((estimated[-1] - estimated[0]) @ r.T - (truth[-1] - truth[0]))
     return {"ate_rmse_m": round(float(np.sqrt(np.mean(error ** 2))), 6), "ate_max_m": round(float(error.max()), 6),
