@@ -113,6 +113,36 @@ def test_a_lower_obstacle_threshold_marks_a_bush_rays_pass_through(tmp_path):
     assert np.array_equal(lower.cells[ys, xs], np.where(bush, 100, 0))
 
 
+def test_a_low_bush_whose_base_hides_the_ground_is_an_obstacle_and_a_kerb_is_not(tmp_path):
+    """Under a low bush the map sees no ground: its lowest voxel (one layer over the road) was the
+    floor, and the bush, 0.2-0.6 m over the road, stood one layer over it: under a 0.3 m band. A
+    floor a layer over its surroundings on a patch 5 columns across or less is not ground in the
+    grid, so the bush is an obstacle; a sidewalk a layer over the road (a kerb, 10 columns wide)
+    stays free, and a 20 % grade's staircase of layers stays the ground, layer for layer."""
+    from voxtool.ground import MAP_GRID_GROUND, GroundParams, ground_of, occupied_voxels, project_above_ground
+    from voxtool.io.mapfile import load_map
+
+    xs, ys = (a.ravel() for a in np.meshgrid(np.arange(40), np.arange(40), indexing="ij"))
+    bush = (xs >= 10) & (xs < 13) & (ys >= 10) & (ys < 13)
+    sidewalk = xs >= 30
+    floor = np.where(sidewalk, 1, 0)
+    keys = [np.c_[xs[~bush], ys[~bush], floor[~bush]]]
+    keys += [np.c_[xs[bush], ys[bush], np.full(int(bush.sum()), k)] for k in (1, 2)]
+    save_occupied(np.concatenate(keys) + TREE_MAX_VAL, tmp_path / "bush.vxm")
+    backend = load_map(tmp_path / "bush.vxm")[0]
+    grid = project_above_ground(backend.leaves(), RES, backend.sensor.threshold_log, (0.3, 2.0))
+    assert np.array_equal(grid.cells[ys, xs], np.where(bush, 100, 0))
+    before = project_above_ground(backend.leaves(), RES, backend.sensor.threshold_log, (0.3, 2.0), GroundParams())
+    assert not np.any(before.cells[ys, xs] == 100)  # the bush's base as its ground: nothing in the band
+
+    slope = xs // 5  # a layer every 5 columns: a 20 % grade
+    save_occupied(np.c_[xs, ys, slope] + TREE_MAX_VAL, tmp_path / "slope.vxm")
+    backend = load_map(tmp_path / "slope.vxm")[0]
+    voxels, hits = occupied_voxels(backend.leaves(), backend.sensor.threshold_log)
+    ground = ground_of(voxels, RES, MAP_GRID_GROUND, weights=hits)
+    np.testing.assert_allclose(ground.under(xs + TREE_MAX_VAL, ys + TREE_MAX_VAL), slope * RES, atol=1e-9)
+
+
 def test_a_road_across_a_voxel_boundary_is_free(tmp_path):
     """Real roads straddle voxel boundaries: each column holds the floor voxel and the one above it
     (KITTI: 0.2 m voxels, road points within 5 cm of a boundary). That upper voxel is still the

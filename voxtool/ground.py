@@ -43,6 +43,20 @@ class GroundParams:
     pit_quantile: float = 0.25  # ... the median of their floors' lower quartiles
     pit_depth_m: float = 1.0  # a floor deeper than this under the typical floor around it is not the ground ...
     pit_hits: float = 3.5  # ... where their voxel was hit at most this often (the road is hit again and again)
+    # a floor over the surface opened by a window at most this many columns wide is not ground
+    # once it stands narrow_step_m over it (None: step_m): a slope's staircase of voxel layers keeps
+    # steps 5 columns wide up to a 20 % grade, so what such a window cuts is an object's base
+    narrow_columns: int = 5
+    narrow_step_m: float | None = None
+
+
+# The ground of a map's --above-ground grid and picture: a floor a voxel layer over the floors
+# around it, on a patch 5 columns across or less, is not ground. Under a bush, a car's sill, a
+# kerb stone, the lowest voxel is the object's base, and taking it for the ground lifted the
+# object out of a 0.3 m band; a kerb's top stays ground-level in the grid either way (its surface
+# one layer over the road's ground is under the band). `clean` keeps GroundParams(): there the
+# points of a kerb must stay ground. Measured: docs/design/ground.md, "Narrow steps".
+MAP_GRID_GROUND = GroundParams(narrow_step_m=0.05)
 
 
 def parse_above_ground(text: str | None) -> tuple[float, float] | None:
@@ -323,7 +337,9 @@ def ground_from_codes(codes: np.ndarray, hits: np.ndarray, resolution: float, pa
     previous = 0
     while window * width <= params.max_window_m:
         opened = _filter(_filter(surface, window, True), window, False)
-        rise = (params.step_m + params.slope * (window - previous) * width) / resolution
+        narrow = params.narrow_step_m is not None and 2 * window + 1 <= params.narrow_columns
+        step = params.narrow_step_m if narrow else params.step_m
+        rise = (step + params.slope * (window - previous) * width) / resolution
         ground &= ~((surface != NONE) & (opened != NONE) & (surface - opened > rise))
         surface = np.where(opened != NONE, opened, surface)
         previous, window = window, window * 2
@@ -359,7 +375,7 @@ def check_has_height(where: str, leaves: Leaves, resolution: float, threshold_lo
 
 
 def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float, band: tuple[float, float],
-                         params: GroundParams = GroundParams(), obstacle_log: float | None = None) -> Grid2D:
+                         params: GroundParams = MAP_GRID_GROUND, obstacle_log: float | None = None) -> Grid2D:
     """The 2D grid of what stands MIN..MAX metres above the ground: a cell is occupied where an
     occupied voxel's centre lies in that band above the ground under it, free where the ground
     under it is known and nothing in the band is occupied, unknown where its ground is not.

@@ -269,10 +269,10 @@ def picture(leaves: Leaves, resolution: float, threshold_log: float, view: str =
     raster = Raster.covering(view, *bounds, layer)
     raster.add(leaves, threshold_log)
     if above_ground is not None:
-        from voxtool.ground import ground_of, occupied_voxels
+        from voxtool.ground import MAP_GRID_GROUND, ground_of, occupied_voxels
 
         keys, hits = occupied_voxels(leaves, threshold_log)
-        raster.ground = ground_of(keys, resolution, weights=hits)
+        raster.ground = ground_of(keys, resolution, MAP_GRID_GROUND, weights=hits)
         raster.band = above_ground
     return raster
 
