@@ -89,8 +89,9 @@ def test_returns_under_the_road_are_not_its_ground(tmp_path):
 
 def test_a_lower_obstacle_threshold_marks_a_bush_rays_pass_through(tmp_path):
     """A bush whose voxels were hit once and missed three times (log-odds 0.85 - 3 x 0.41 = -0.37)
-    is free in the map: no obstacle at the map's threshold, an obstacle at obstacle_log -0.4. A
-    voxel missed once and never hit (-0.41) stays free at -0.4, and the ground is the road both ways."""
+    is free in the map: no obstacle at the map's threshold, an obstacle at obstacle_log -0.4 (and
+    with `export --obstacle-threshold 0.4`). A voxel missed once and never hit (-0.41) stays free
+    at -0.4, and the ground is the road both ways; a post beside them makes the map 3D."""
     from voxtool.config import SensorModel
     from voxtool.ground import project_above_ground
     from voxtool.io.mapfile import load_map
@@ -99,8 +100,9 @@ def test_a_lower_obstacle_threshold_marks_a_bush_rays_pass_through(tmp_path):
     xs, ys = (a.ravel() for a in np.meshgrid(np.arange(30), np.arange(30), indexing="ij"))
     bush = (xs >= 10) & (xs < 14) & (ys >= 10) & (ys < 14)
     seen_once = (xs >= 20) & (xs < 24) & (ys >= 5) & (ys < 9)
-    keys = [np.c_[xs, ys, np.zeros(xs.shape, np.int64)]]  # the road, hit often
-    values = [np.full(xs.shape, 3.5)]
+    post = (xs == 2) & (ys == 2)
+    keys = [np.c_[xs, ys, np.zeros(xs.shape, np.int64)], np.c_[np.full((5, 2), 2), np.arange(1, 6)]]  # road, post
+    values = [np.full(xs.shape, 3.5), np.full(5, 3.5)]  # hit often
     for k in (4, 5):  # 0.8-1.2 m over the road
         keys += [np.c_[xs[bush], ys[bush], np.full(int(bush.sum()), k)],
                  np.c_[xs[seen_once], ys[seen_once], np.full(int(seen_once.sum()), k)]]
@@ -109,8 +111,17 @@ def test_a_lower_obstacle_threshold_marks_a_bush_rays_pass_through(tmp_path):
     backend = load_map(tmp_path / "bush.vxm")[0]
     plain = project_above_ground(backend.leaves(), RES, backend.sensor.threshold_log, (0.3, 2.0))
     lower = project_above_ground(backend.leaves(), RES, backend.sensor.threshold_log, (0.3, 2.0), obstacle_log=-0.4)
-    assert np.array_equal(plain.cells[ys, xs], np.zeros(xs.shape))
-    assert np.array_equal(lower.cells[ys, xs], np.where(bush, 100, 0))
+    assert np.array_equal(plain.cells[ys, xs], np.where(post, 100, 0))
+    assert np.array_equal(lower.cells[ys, xs], np.where(bush | post, 100, 0))
+    # the same from the command line, as a probability (0.4: log-odds -0.405, under the bush's -0.37)
+    code, text, err = cli("export", tmp_path / "bush.vxm", "-o", tmp_path / "g.pgm", "--above-ground", "0.3,2",
+                          "--obstacle-threshold", "0.4", "--json")
+    assert code == 0 and json.loads(text)["obstacle_threshold"] == 0.4, err
+    assert np.array_equal(read_nav2_map(tmp_path / "g.yaml")[0][ys, xs], np.where(bush | post, 100, 0))
+    for args, says in ((["--obstacle-threshold", "0.4"], "is for the --above-ground grid"),
+                       (["--above-ground", "0.3,2", "--obstacle-threshold", "1"], "must be a probability")):
+        code, _, err = cli("export", tmp_path / "bush.vxm", "-o", tmp_path / "h.pgm", *args)
+        assert code == 2 and says in err and len(err.splitlines()) == 1 and not (tmp_path / "h.pgm").exists()
 
 
 def test_a_low_bush_whose_base_hides_the_ground_is_an_obstacle_and_a_kerb_is_not(tmp_path):

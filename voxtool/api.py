@@ -397,13 +397,16 @@ def export_scans(source: str | os.PathLike, output: str | os.PathLike, options: 
 def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free: bool = False,
                progress: bool | None = False, ros2_only: bool = False, view: str | None = None,
                slice_z: float | None = None, crop: tuple | None = None,
-               z_range: tuple | None = None, above_ground: tuple | None = None) -> dict:  # noqa: ARG001
+               z_range: tuple | None = None, above_ground: tuple | None = None,
+               obstacle_threshold: float | None = None) -> dict:  # noqa: ARG001
     """Write a map (.vxm, .bt or a sharded map) as .bt, .ply, .pcd, .png, .mcap or .pgm (a 2D
     grid + its nav2 YAML); returns what was written. A sharded map is read part by part, except
     for .mcap, .vxm and .pgm and with `crop` (whole). `view` and `slice_z` are for pictures
     (io.picture); `crop` (xmin, ymin, zmin, xmax, ymax, zmax, metres): only the voxels whose
     centres lie in that box; `z_range` (min, max, metres): the heights a 2D grid (.pgm, .mcap)
-    is projected from. `ros2_only` changes nothing (every .mcap is ROS 2 now) and is kept for
+    is projected from; `above_ground` (min, max, metres): the heights over the ground instead,
+    with voxels over occupancy probability `obstacle_threshold` as obstacles (default: the map's
+    threshold; docs/viewing.md). `ros2_only` changes nothing (every .mcap is ROS 2 now) and is kept for
     callers that pass it."""
     from voxtool.atomic import check_writable
     from voxtool.io.export import TAKES_ORIGIN, TAKES_Z_RANGE
@@ -433,6 +436,14 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
         if z_range is not None:
             raise ParameterError("--z-range and --above-ground are two ways to choose heights: give one")
         extra["above_ground"] = tuple(above_ground)
+    if obstacle_threshold is not None:
+        if above_ground is None or kind not in TAKES_Z_RANGE:
+            raise ParameterError(f"{output}: --obstacle-threshold is for the --above-ground grid of a .pgm or .mcap")
+        if not 0.0 < obstacle_threshold < 1.0:
+            raise ParameterError(f"--obstacle-threshold {obstacle_threshold:g} must be a probability between 0 and 1")
+        from voxtool.config import logodds
+
+        extra["obstacle_log"] = logodds(obstacle_threshold)
     if crop is not None:
         crop_keys(crop, 1.0)  # a bad box is refused before the map is read
     if Path(path).is_dir() and kind in STREAMED and crop is None and not map_origin(path) and above_ground is None:
@@ -471,6 +482,8 @@ def export_map(path: str | os.PathLike, output: str | os.PathLike, include_free:
             check_has_height(str(path), leaves, res, thr)
         steps.update(1)
         written = writer(output, leaves, res, thr, include_free, **extra)
+        if obstacle_threshold is not None:
+            written["obstacle_threshold"] = obstacle_threshold
         steps.update(1)
     return written
 

@@ -402,9 +402,10 @@ def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float
 
 
 def project_grid(leaves: Leaves, resolution: float, threshold_log: float, z_range: tuple[float, float] | None = None,
-                 above_ground: tuple[float, float] | None = None) -> Grid2D:
+                 above_ground: tuple[float, float] | None = None, obstacle_log: float | None = None) -> Grid2D:
     """The 2D grid of a map: what stands `above_ground` (MIN, MAX metres over the ground) where
-    given, else the voxels in z_range (voxtool.grid.project)."""
+    given (obstacles over log-odds `obstacle_log`, project_above_ground), else the voxels in
+    z_range (voxtool.grid.project)."""
     if above_ground is not None:
-        return project_above_ground(leaves, resolution, threshold_log, above_ground)
+        return project_above_ground(leaves, resolution, threshold_log, above_ground, obstacle_log=obstacle_log)
     return project(leaves, resolution, threshold_log, z_range)

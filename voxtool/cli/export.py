@@ -36,13 +36,18 @@ from voxtool.cli.common import emit, handle_errors, origin_option, parse_box, so
               help=".pgm/.mcap 2D grid: a cell is occupied where an occupied voxel lies MIN..MAX metres above the "
                    "ground under it (the ground found in the map, docs/viewing.md), free where its ground is known "
                    "and nothing there is occupied, unknown elsewhere: for sloped outdoor ground, instead of --z-range.")
+@click.option("--obstacle-threshold", type=float, default=None, metavar="P",
+              help="With --above-ground: a voxel in the band is an obstacle where its occupancy probability is over "
+                   "P (default: the map's threshold, 0.5). 0.4 also marks voxels hit once and passed through up "
+                   "to three times (bushes, fences): more of the objects, at the cost of a few free cells on the "
+                   "road (docs/viewing.md).")
 @source_options
 @origin_option
 @click.option("--json", "as_json", is_flag=True, help="Print what was written as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_range, above_ground, as_json, progress,  # noqa: ARG001
-           **kw):
+def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_range, above_ground, obstacle_threshold,  # noqa: ARG001
+           as_json, progress, **kw):
     """Export a map snapshot (.vxm) or an OctoMap .bt: .bt (OctoMap binary, the max-likelihood
     tree), .ply/.pcd (voxel centres), .png (a picture with colour bar, legend, scale bar and axes
     in metres; --view, --slice), .mcap (for Foxglove, RViz and rosbags), or import an OctoMap .bt
@@ -68,7 +73,8 @@ def export(map_file, output, include_free, ros2_only, view, slice_z, crop, z_ran
     from voxtool.ground import parse_above_ground
 
     written = export_map(map_file, output, include_free, progress, view=view, slice_z=slice_z, crop=box,
-                         z_range=parse_z_range(z_range), above_ground=parse_above_ground(above_ground))
+                         z_range=parse_z_range(z_range), above_ground=parse_above_ground(above_ground),
+                         obstacle_threshold=obstacle_threshold)
     rows = [(key.replace("_", " "), value_text(value)) for key, value in written.items() if value is not None]
     emit(written, as_json, rows, written=[output, Path(written["yaml"])] if "yaml" in written else output)
 

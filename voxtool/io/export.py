@@ -167,11 +167,12 @@ def write_vxm(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
 
 
 def write_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-               stamp_ns: int = 0, z_range: tuple | None = None, origin=None, above_ground: tuple | None = None) -> dict:
+               stamp_ns: int = 0, z_range: tuple | None = None, origin=None, above_ground: tuple | None = None,
+               obstacle_log: float | None = None) -> dict:
     from voxtool.io.viewer_mcap import write_map_mcap
 
     return write_map_mcap(path, leaves, resolution, threshold_log, include_free, stamp_ns, z_range, origin,
-                          above_ground)
+                          above_ground, obstacle_log)
 
 
 def grid_yaml_path(path: Path) -> Path:
@@ -180,7 +181,8 @@ def grid_yaml_path(path: Path) -> Path:
 
 
 def write_pgm(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
-              z_range: tuple | None = None, origin=None, above_ground: tuple | None = None) -> dict:
+              z_range: tuple | None = None, origin=None, above_ground: tuple | None = None,
+              obstacle_log: float | None = None) -> dict:
     """A 2D occupancy grid for nav2's map_server: the image and its YAML beside it (voxtool.grid).
     The YAML's origin is in the scans' frame (a map built about --origin is shifted back, as the
     .mcap's OccupancyGrid is), and says so; --z-range stays in the map's local heights."""
@@ -192,7 +194,7 @@ def write_pgm(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
         raise ParameterError(f"{path}: a grid always holds free, occupied and unknown cells; --free is for .ply/.pcd")
     yaml_path = grid_yaml_path(path)
     check_writable(yaml_path)
-    grid = project_grid(leaves, resolution, threshold_log, z_range, above_ground)
+    grid = project_grid(leaves, resolution, threshold_log, z_range, above_ground, obstacle_log)
     with atomic_writer(path) as handle:
         handle.write(pgm_bytes(grid))
     with atomic_writer(yaml_path) as handle:

@@ -136,7 +136,7 @@ def local_frame_message(origin, stamp_ns: int):
 
 def write_map_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log: float, include_free: bool,
                    stamp_ns: int = 0, z_range: tuple | None = None, origin=None,
-                   above_ground: tuple | None = None) -> dict:
+                   above_ground: tuple | None = None, obstacle_log: float | None = None) -> dict:
     """The map as one octomap_msgs/Octomap, one foxglove_msgs/SceneUpdate and one
     nav_msgs/OccupancyGrid (projected in `z_range`, as octomap_server's projected_map), all at
     `stamp_ns` (log time, header and entity stamps): the time of the last scan the map holds, 0
@@ -148,7 +148,7 @@ def write_map_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log:
     shifted = origin is not None and any(origin)
     update = scene_update(leaves, resolution, threshold_log, include_free, stamp_ns, origin=origin)
     octomap = octomap_message(leaves, resolution, threshold_log, stamp_ns, LOCAL_FRAME if shifted else FRAME)
-    grid = project_grid(leaves, resolution, threshold_log, z_range, above_ground) if len(leaves) else None
+    grid = project_grid(leaves, resolution, threshold_log, z_range, above_ground, obstacle_log) if len(leaves) else None
     with atomic_writer(path) as f:
         writer = Ros2McapWriter(f)
         if shifted:
