@@ -20,7 +20,8 @@ The grid table (`export --above-ground 0.3,2` of each sequence's map, what a pla
   that it marks free; `--pcd DIR --poses FILE` adds an unlabelled dump (path free only);
 - path free, cleaned: the same of the grid of `clean --map` at the same resolution (the map of
   the points `clean` keeps: vehicles that drive alongside are no obstacle in it).
-`--obstacle-log-odds T`: the grids with voxels over log-odds T as obstacles (the ground as before).
+`--obstacle-log-odds T`: the grids with voxels over log-odds T as obstacles (the ground as before);
+`--step-everywhere`: the ground with clean's 0.3 m step at every window, as the grid had it before.
 """
 
 from __future__ import annotations
@@ -132,8 +133,9 @@ def labelled_cells(grid, points: np.ndarray, labels: np.ndarray) -> tuple[np.nda
     return road_cells, obj_cells
 
 
-def grid_of(source: Path, resolution: float, poses: str | None = None, obstacle_log: float | None = None):
-    """The --above-ground grid of the source's map, the scans (world points) and the sensor positions."""
+def grid_of(source: Path, resolution: float, poses: str | None = None, choice: dict | None = None):
+    """The --above-ground grid of the source's map, the scans (world points) and the sensor positions.
+    `choice`: project_above_ground's keywords (obstacle_log, params), if not its defaults."""
     from voxtool.api import build_map
     from voxtool.config import MapParams, SensorModel
     from voxtool.ground import project_above_ground
@@ -146,15 +148,14 @@ def grid_of(source: Path, resolution: float, poses: str | None = None, obstacle_
     build_map(source, options, MapParams(resolution=resolution), SensorModel(), "octree", out, False)
     backend, _ = load_map(out)
     t0 = time.perf_counter()
-    grid = project_above_ground(backend.leaves(), resolution, backend.sensor.threshold_log, BAND,
-                                obstacle_log=obstacle_log)
+    grid = project_above_ground(backend.leaves(), resolution, backend.sensor.threshold_log, BAND, **(choice or {}))
     seconds = time.perf_counter() - t0
     scans = list(open_source(source, options).scans)
     return grid, scans, np.array([s.origin for s in scans], np.float64), seconds
 
 
 def cleaned_path_free(source: Path, resolution: float, origins: np.ndarray, poses: str | None = None,
-                      obstacle_log: float | None = None) -> float:
+                      choice: dict | None = None) -> float:
     """The path-free share of the --above-ground grid of `clean --map`'s map of the source."""
     from voxtool.clean import CleanParams, clean_source
     from voxtool.ground import project_above_ground
@@ -165,16 +166,15 @@ def cleaned_path_free(source: Path, resolution: float, origins: np.ndarray, pose
     OUT.mkdir(exist_ok=True)
     clean_source(source, SourceOptions(poses=poses), CleanParams(resolution=resolution), map_output=out, progress=False)
     backend, _ = load_map(out)
-    grid = project_above_ground(backend.leaves(), resolution, backend.sensor.threshold_log, BAND,
-                                obstacle_log=obstacle_log)
+    grid = project_above_ground(backend.leaves(), resolution, backend.sensor.threshold_log, BAND, **(choice or {}))
     return _share(grid, path_cells(grid, origins), 0)
 
 
-def grid_rows(kitti: Path, resolution: float, pcd: list[tuple[Path, str]], obstacle_log: float | None = None
+def grid_rows(kitti: Path, resolution: float, pcd: list[tuple[Path, str]], choice: dict | None = None
               ) -> list[dict]:
     rows = []
     for sequence in sorted(p for p in kitti.iterdir() if (p / "labels").is_dir()):
-        grid, scans, origins, seconds = grid_of(sequence, resolution, obstacle_log=obstacle_log)
+        grid, scans, origins, seconds = grid_of(sequence, resolution, choice=choice)
         labels = np.concatenate([np.fromfile(f, dtype="<u4") & 0xFFFF for f in sorted((sequence / "labels").glob("*.label"))])
         points = np.concatenate([s.points for s in scans]).astype(np.float64)
         assert len(points) == len(labels), "a scan lost points on reading: labels no longer line up"
@@ -182,13 +182,13 @@ def grid_rows(kitti: Path, resolution: float, pcd: list[tuple[Path, str]], obsta
         rows.append({"input": f"KITTI {sequence.name}", "road_cells": len(road), "road_free": _share(grid, road, 0),
                      "object_cells": len(objects), "objects_occupied": _share(grid, objects, 100),
                      "path_free": _share(grid, path_cells(grid, origins), 0),
-                     "path_free_cleaned": cleaned_path_free(sequence, resolution, origins, obstacle_log=obstacle_log),
+                     "path_free_cleaned": cleaned_path_free(sequence, resolution, origins, choice=choice),
                      "ground_s": round(seconds, 3)})
     for folder, poses in pcd:
-        grid, _, origins, seconds = grid_of(folder, resolution, poses, obstacle_log)
+        grid, _, origins, seconds = grid_of(folder, resolution, poses, choice)
         rows.append({"input": folder.name, "road_cells": None, "road_free": None, "object_cells": None,
                      "objects_occupied": None, "path_free": _share(grid, path_cells(grid, origins), 0),
-                     "path_free_cleaned": cleaned_path_free(folder, resolution, origins, poses, obstacle_log),
+                     "path_free_cleaned": cleaned_path_free(folder, resolution, origins, poses, choice),
                      "ground_s": round(seconds, 3)})
     return rows
 
@@ -220,8 +220,16 @@ def main() -> None:
     ap.add_argument("--obstacle-log-odds", type=float, default=None,
                     help="grid table: a voxel over this log-odds in the band is an obstacle (default: the map's "
                          "occupancy threshold, what `export --above-ground` uses)")
+    ap.add_argument("--step-everywhere", action="store_true",
+                    help="grid table: the ground with the 0.3 m step at every window (clean's; before the grid's "
+                         "narrow steps, docs/design/ground.md section 3)")
     args = ap.parse_args()
-    grid = grid_rows(Path(args.kitti), args.resolution, [(Path(d), p) for d, p in args.pcd], args.obstacle_log_odds)
+    choice = {"obstacle_log": args.obstacle_log_odds}
+    if args.step_everywhere:
+        from voxtool.ground import GroundParams
+
+        choice["params"] = GroundParams()
+    grid = grid_rows(Path(args.kitti), args.resolution, [(Path(d), p) for d, p in args.pcd], choice)
     print(f"{'input':<16} {'road cells':>10} {'road free %':>12} {'object cells':>13} {'objects occ. %':>15} "
           f"{'path free %':>12} {'cleaned %':>10} {'ground s':>9}")
     for r in grid:
