@@ -44,8 +44,9 @@ class GroundParams:
     pit_depth_m: float = 1.0  # a floor deeper than this under the typical floor around it is not the ground ...
     pit_hits: float = 3.5  # ... where their voxel was hit at most this often (the road is hit again and again)
     # a floor over the surface opened by a window at most this many columns wide is not ground
-    # once it stands narrow_step_m over it (None: step_m): a slope's staircase of voxel layers keeps
-    # steps 5 columns wide up to a 20 % grade, so what such a window cuts is an object's base
+    # once it stands narrow_step_m over it (None: step_m): such a window lowers a slope's top (a
+    # crest, the edge of what was seen) by at most half a layer up to a 25 % grade, so a floor a
+    # whole layer over it is an object's base
     narrow_columns: int = 5
     narrow_step_m: float | None = None
 
