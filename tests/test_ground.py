@@ -399,18 +399,16 @@ def test_low_objects_on_real_kitti_frames_are_marked_and_the_road_stays_free(kit
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from bench_ground import BAND, _share, labelled_cells, path_cells
 
-    for seq in ("05",):
-        build_map(kitti_sample / seq, SourceOptions(), MapParams(resolution=RES), SensorModel(), "octree",
-                  tmp_path / f"{seq}.vxm", False)
-        backend = load_map(tmp_path / f"{seq}.vxm")[0]
-        scans = list(open_source(kitti_sample / seq, SourceOptions()).scans)
-        points = np.concatenate([s.points for s in scans]).astype(np.float64)
-        labels = np.concatenate([np.fromfile(f, dtype="<u4") & 0xFFFF
-                                 for f in sorted((kitti_sample / seq / "labels").glob("*.label"))])
-        origins = np.array([s.origin for s in scans])
-        now, before = (project_above_ground(backend.leaves(), RES, backend.sensor.threshold_log, BAND, params)
-                       for params in (MAP_GRID_GROUND, GroundParams()))
-        road, objects = labelled_cells(now, points, labels)  # the two grids share the map's footprint
-        assert _share(now, objects, 100) >= _share(before, objects, 100) + 1.0, seq
-        assert _share(now, road, 0) >= 99.0, seq
-        assert _share(now, path_cells(now, origins), 0) == _share(before, path_cells(before, origins), 0), seq
+    sequence = kitti_sample / "05"
+    build_map(sequence, SourceOptions(), MapParams(resolution=RES), SensorModel(), "octree", tmp_path / "05.vxm", False)
+    backend = load_map(tmp_path / "05.vxm")[0]
+    scans = list(open_source(sequence, SourceOptions()).scans)
+    points = np.concatenate([s.points for s in scans]).astype(np.float64)
+    labels = np.concatenate([np.fromfile(f, dtype="<u4") & 0xFFFF for f in sorted((sequence / "labels").glob("*.label"))])
+    origins = np.array([s.origin for s in scans])
+    now, before = (project_above_ground(backend.leaves(), RES, backend.sensor.threshold_log, BAND, params)
+                   for params in (MAP_GRID_GROUND, GroundParams()))
+    road, objects = labelled_cells(now, points, labels)  # the two grids share the map's footprint
+    assert _share(now, objects, 100) >= _share(before, objects, 100) + 1.0
+    assert _share(now, road, 0) >= 99.0
+    assert _share(now, path_cells(now, origins), 0) == _share(before, path_cells(before, origins), 0)
