@@ -19,9 +19,12 @@ The grid table (`export --above-ground 0.3,2` of each sequence's map, what a pla
 - path free: the share of cells within 2 m of the driven path (the sensor's positions, joined)
   that it marks free; `--pcd DIR --poses FILE` adds an unlabelled dump (path free only);
 - path free, cleaned: the same of the grid of `clean --map` at the same resolution (the map of
-  the points `clean` keeps: vehicles that drive alongside are no obstacle in it).
+  the points `clean` keeps: vehicles that drive alongside are no obstacle in it);
+- clean --grid: road free, objects occupied and path free of the grid `clean --grid` writes at
+  the same resolution (the kept points' map, and their returns that map has not cleared).
 `--obstacle-log-odds T`: the grids with voxels over log-odds T as obstacles (the ground as before);
-`--step-everywhere`: the ground with clean's 0.3 m step at every window, as the grid had it before.
+`--step-everywhere`: the ground with clean's 0.3 m step at every window, as the grid had it before;
+`--kitti-odometry`: the KITTI sequences posed by `voxtool odometry` instead of the survey.
 """
 
 from __future__ import annotations
@@ -154,43 +157,64 @@ def grid_of(source: Path, resolution: float, poses: str | None = None, choice: d
     return grid, scans, np.array([s.origin for s in scans], np.float64), seconds
 
 
-def cleaned_path_free(source: Path, resolution: float, origins: np.ndarray, poses: str | None = None,
-                      choice: dict | None = None) -> float:
-    """The path-free share of the --above-ground grid of `clean --map`'s map of the source."""
-    from voxtool.clean import CleanParams, clean_source
-    from voxtool.ground import project_above_ground
-    from voxtool.io.mapfile import load_map
-    from voxtool.sources import SourceOptions
+def cleaned_grids(source: Path, resolution: float, origins: np.ndarray, poses: str | None = None,
+                  choice: dict | None = None):
+    """(the path-free share of the --above-ground grid of `clean --map`'s map, the grid `clean
+    --grid` writes) of the source, cleaned once at the same resolution."""
+    from voxtool.clean import CleanParams, clean_stream, static_map
+    from voxtool.ground import project_above_ground, project_returns_above_ground
+    from voxtool.sources import SourceOptions, open_source
 
-    out = OUT / f"cleaned_{source.name}.vxm"
-    OUT.mkdir(exist_ok=True)
-    clean_source(source, SourceOptions(poses=poses), CleanParams(resolution=resolution), map_output=out, progress=False)
-    backend, _ = load_map(out)
-    grid = project_above_ground(backend.leaves(), resolution, backend.sensor.threshold_log, BAND, **(choice or {}))
-    return _share(grid, path_cells(grid, origins), 0)
+    params = CleanParams(resolution=resolution)
+    cleaned = clean_stream(open_source(source, SourceOptions(poses=poses)), params, progress=False)
+    backend, _ = static_map(cleaned, params)
+    exported = project_above_ground(backend.leaves(), resolution, backend.sensor.threshold_log, BAND, **(choice or {}))
+    grid, _ = project_returns_above_ground(cleaned.points, cleaned.scan_starts, origins, backend, BAND,
+                                           keep=~cleaned.dynamic, evidence=~cleaned.void)
+    return _share(exported, path_cells(exported, origins), 0), grid
 
 
-def grid_rows(kitti: Path, resolution: float, pcd: list[tuple[Path, str]], choice: dict | None = None
-              ) -> list[dict]:
+def grid_rows(kitti: Path, resolution: float, pcd: list[tuple[Path, str]], choice: dict | None = None,
+              kitti_poses: dict | None = None) -> list[dict]:
+    """`kitti_poses`: a pose file per sequence name, to use instead of the survey's."""
     rows = []
     for sequence in sorted(p for p in kitti.iterdir() if (p / "labels").is_dir()):
-        grid, scans, origins, seconds = grid_of(sequence, resolution, choice=choice)
+        poses = (kitti_poses or {}).get(sequence.name)
+        grid, scans, origins, seconds = grid_of(sequence, resolution, poses, choice)
         labels = np.concatenate([np.fromfile(f, dtype="<u4") & 0xFFFF for f in sorted((sequence / "labels").glob("*.label"))])
         points = np.concatenate([s.points for s in scans]).astype(np.float64)
         assert len(points) == len(labels), "a scan lost points on reading: labels no longer line up"
         road, objects = labelled_cells(grid, points, labels)
+        cleaned_path, returns = cleaned_grids(sequence, resolution, origins, poses, choice)
+        road_r, objects_r = labelled_cells(returns, points, labels)
         rows.append({"input": f"KITTI {sequence.name}", "road_cells": len(road), "road_free": _share(grid, road, 0),
                      "object_cells": len(objects), "objects_occupied": _share(grid, objects, 100),
-                     "path_free": _share(grid, path_cells(grid, origins), 0),
-                     "path_free_cleaned": cleaned_path_free(sequence, resolution, origins, choice=choice),
+                     "path_free": _share(grid, path_cells(grid, origins), 0), "path_free_cleaned": cleaned_path,
+                     "grid_road_free": _share(returns, road_r, 0), "grid_objects_occupied": _share(returns, objects_r, 100),
+                     "grid_path_free": _share(returns, path_cells(returns, origins), 0),
                      "ground_s": round(seconds, 3)})
     for folder, poses in pcd:
         grid, _, origins, seconds = grid_of(folder, resolution, poses, choice)
+        cleaned_path, returns = cleaned_grids(folder, resolution, origins, poses, choice)
         rows.append({"input": folder.name, "road_cells": None, "road_free": None, "object_cells": None,
                      "objects_occupied": None, "path_free": _share(grid, path_cells(grid, origins), 0),
-                     "path_free_cleaned": cleaned_path_free(folder, resolution, origins, poses, choice),
-                     "ground_s": round(seconds, 3)})
+                     "path_free_cleaned": cleaned_path, "grid_road_free": None, "grid_objects_occupied": None,
+                     "grid_path_free": _share(returns, path_cells(returns, origins), 0), "ground_s": round(seconds, 3)})
     return rows
+
+
+def odometry_poses(kitti: Path) -> dict:
+    """Each labelled sequence posed by `voxtool odometry` (the first scan's frame), as pose files."""
+    from voxtool.odometry import OdometryParams, estimate_poses, write_pose_file
+    from voxtool.sources import SourceOptions
+
+    found = {}
+    OUT.mkdir(exist_ok=True)
+    for sequence in sorted(p for p in kitti.iterdir() if (p / "labels").is_dir()):
+        poses = estimate_poses(sequence, SourceOptions(), OdometryParams(), progress=False)
+        found[sequence.name] = str(OUT / f"odometry_{sequence.name}.txt")
+        write_pose_file(found[sequence.name], poses["poses"], poses["stamps_ns"])
+    return found
 
 
 def patchwork_ground(sequence: Path) -> tuple[np.ndarray, float]:
@@ -217,6 +241,8 @@ def main() -> None:
     ap.add_argument("--pcd", nargs=2, action="append", default=[], metavar=("DIR", "POSES"),
                     help="an unlabelled PCD dump and its pose file: its path-free share in the grid table")
     ap.add_argument("--grid-only", action="store_true", help="only the grid table")
+    ap.add_argument("--kitti-odometry", action="store_true",
+                    help="grid table: the KITTI sequences posed by `voxtool odometry` instead of their survey poses")
     ap.add_argument("--obstacle-log-odds", type=float, default=None,
                     help="grid table: a voxel over this log-odds in the band is an obstacle (default: the map's "
                          "occupancy threshold, what `export --above-ground` uses)")
@@ -229,15 +255,20 @@ def main() -> None:
         from voxtool.ground import GroundParams
 
         choice["params"] = GroundParams()
-    grid = grid_rows(Path(args.kitti), args.resolution, [(Path(d), p) for d, p in args.pcd], choice)
+    kitti_poses = odometry_poses(Path(args.kitti)) if args.kitti_odometry else None
+    grid = grid_rows(Path(args.kitti), args.resolution, [(Path(d), p) for d, p in args.pcd], choice, kitti_poses)
+
+    def cell(v):
+        return "-" if v is None else v
+
+    print(f"{'':<16} {'export --above-ground':^68} {'clean --grid':^27}")
     print(f"{'input':<16} {'road cells':>10} {'road free %':>12} {'object cells':>13} {'objects occ. %':>15} "
-          f"{'path free %':>12} {'cleaned %':>10} {'ground s':>9}")
+          f"{'path free %':>12} {'cleaned %':>10} {'road %':>8} {'objects %':>10} {'path %':>7} {'ground s':>9}")
     for r in grid:
-        print(f"{r['input']:<16} {r['road_cells'] if r['road_cells'] is not None else '-':>10} "
-              f"{r['road_free'] if r['road_free'] is not None else '-':>12} "
-              f"{r['object_cells'] if r['object_cells'] is not None else '-':>13} "
-              f"{r['objects_occupied'] if r['objects_occupied'] is not None else '-':>15} {r['path_free']:>12} "
-              f"{r['path_free_cleaned']:>10} {r['ground_s']:>9}", flush=True)
+        print(f"{r['input']:<16} {cell(r['road_cells']):>10} {cell(r['road_free']):>12} {cell(r['object_cells']):>13} "
+              f"{cell(r['objects_occupied']):>15} {r['path_free']:>12} {r['path_free_cleaned']:>10} "
+              f"{cell(r['grid_road_free']):>8} {cell(r['grid_objects_occupied']):>10} {r['grid_path_free']:>7} "
+              f"{r['ground_s']:>9}", flush=True)
     OUT.mkdir(exist_ok=True)
     (OUT / "ground_grid.json").write_text(json.dumps({"rows": grid, "args": vars(args)}, indent=2))
     if args.grid_only:

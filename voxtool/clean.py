@@ -70,6 +70,7 @@ class CleanParams:
 MIN_VOID_POINTS = 3  # a group with fewer points in void voxels stays: one stray ray is no mover
 SPLIT_SCAN = 10_000  # points: a smaller scan's rays are cast on one thread
 GROUND_COLUMN_M = 0.2  # the ground's columns (metres): coarser than 0.1 m voxels costs 4x less, 2 cm on a 10 % slope
+GRID_BAND = (0.3, 2.0)  # --grid: what stands this high over the ground (metres) is an obstacle
 GROUND_CELLS = 1 << 20  # at most this many ground columns: coarser over a larger area (its cost: 0.1 s a million)
 GROUP_STEPS = 4  # voxels a group reaches beyond its void points (a mover's unseen bottom and edges)
 LEVEL_TOLERANCE = 1e-3  # metres: a scan whose points all lie this close to its sensor's height is a level 2D scan
@@ -285,17 +286,12 @@ def point_columns(points: np.ndarray, resolution: float) -> np.ndarray:
     return keys[:, 0] << 16 | keys[:, 1]
 
 
-def dynamic_points(void_map: VoidMap, points: np.ndarray, scan_starts: np.ndarray | None = None,
-                   ground: np.ndarray | None = None) -> np.ndarray:
-    """Which world points are dynamic (the module's rule): every point's voxel looked up in
-    both maps (chunks of points on the map's threads), then the groups of each scan that has
-    points in void voxels (`scan_starts`: where each scan's points start, and their count
-    last; one scan if None). `ground`: ground_points() of the points, or None to judge the
-    ground as any other surface."""
+def point_evidence(void_map: VoidMap, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(whether each world point's voxel is void, whether some ray crossed it or it is void):
+    every point looked up in both maps, in chunks on the map's threads."""
     from voxtool.parallel import run_parts
 
     n = points.shape[0]
-    starts = np.array([0, n], dtype=np.int64) if scan_starts is None else np.asarray(scan_starts, dtype=np.int64)
     void = np.empty(n, dtype=bool)
     seen = np.empty(n, dtype=bool)
 
@@ -306,6 +302,22 @@ def dynamic_points(void_map: VoidMap, points: np.ndarray, scan_starts: np.ndarra
         seen[a:b] = void_map.crossed.holds(codes) | void[a:b]
 
     run_parts(void_map.threads, look_up, list(range(0, n, CLASSIFY_CHUNK)))
+    return void, seen
+
+
+def dynamic_points(void_map: VoidMap, points: np.ndarray, scan_starts: np.ndarray | None = None,
+                   ground: np.ndarray | None = None, evidence: tuple[np.ndarray, np.ndarray] | None = None
+                   ) -> np.ndarray:
+    """Which world points are dynamic (the module's rule): every point's voxel looked up in
+    both maps (point_evidence, or `evidence` where already found), then the groups of each scan
+    that has points in void voxels (`scan_starts`: where each scan's points start, and their
+    count last; one scan if None). `ground`: ground_points() of the points, or None to judge the
+    ground as any other surface."""
+    from voxtool.parallel import run_parts
+
+    n = points.shape[0]
+    starts = np.array([0, n], dtype=np.int64) if scan_starts is None else np.asarray(scan_starts, dtype=np.int64)
+    void, seen = point_evidence(void_map, points) if evidence is None else evidence
     dynamic = np.zeros(n, dtype=bool)
     voids_before = np.concatenate([[0], np.cumsum(void)])
     scans_with_void = np.flatnonzero(voids_before[starts[1:]] > voids_before[starts[:-1]])
@@ -396,6 +408,7 @@ class Cleaned:
     # kept points casts its rays from (static_map)
     shells: list = field(default_factory=list)
     stream: ScanStream | None = None  # the source read (kind, path), its scans consumed
+    void: np.ndarray | None = None  # (N,) bool: the point's voxel is void (another scan saw through it)
 
 
 def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, progress: bool | None = None) -> Cleaned:
@@ -440,7 +453,9 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     del clouds  # the scans' own arrays: every point was held twice from here on
     judge_ground = params.ground_band >= 0 and points.shape[0] > 0 and not planar
     ground = ground_points(points, params.resolution, params.ground_band) if judge_ground else None
-    dynamic = dynamic_points(void_map, points, starts, ground)
+    void, seen = point_evidence(void_map, points)
+    dynamic = dynamic_points(void_map, points, starts, ground, (void, seen))
+    del seen
     t_classify = time.perf_counter() - t0
     built = report.to_dict()
     figures = {
@@ -457,7 +472,7 @@ def clean_stream(stream: ScanStream, params: CleanParams, threads: int = 0, prog
     if truths and all(t is not None for t in truths):
         truth = np.concatenate(truths)
         figures["accuracy"] = accuracy_figures(dynamic, truth)
-    return Cleaned(points, dynamic, starts, figures, shells, stream)
+    return Cleaned(points, dynamic, starts, figures, shells, stream, void)
 
 
 def static_map(cleaned: Cleaned, params: CleanParams, threads: int = 0, progress: bool | None = None):
@@ -482,13 +497,20 @@ def static_map(cleaned: Cleaned, params: CleanParams, threads: int = 0, progress
 
 def check_outputs(output: str | os.PathLike | None, labels: str | os.PathLike | None,
                   dynamic: str | os.PathLike | None = None, png: str | os.PathLike | None = None,
-                  map_output: str | os.PathLike | None = None) -> None:
+                  map_output: str | os.PathLike | None = None, grid: str | os.PathLike | None = None) -> None:
     """Refuse outputs that cannot be written before any work."""
     from voxtool.atomic import check_writable
 
-    if output is None and labels is None and dynamic is None and png is None and map_output is None:
-        raise ParameterError("clean writes its result: give -o STATIC.pcd/.ply, --map STATIC.vxm, --labels LABELS.npy, "
-                             "--dynamic REMOVED.pcd/.ply or --png OUT.png")
+    if all(p is None for p in (output, labels, dynamic, png, map_output, grid)):
+        raise ParameterError("clean writes its result: give -o STATIC.pcd/.ply, --map STATIC.vxm, --grid GRID.pgm, "
+                             "--labels LABELS.npy, --dynamic REMOVED.pcd/.ply or --png OUT.png")
+    if grid is not None:
+        from voxtool.io.export import check_grid_writable
+
+        if Path(grid).suffix.lower() != ".pgm":
+            raise ParameterError(f"{grid}: --grid writes a planner's grid as nav2 reads it, a .pgm (and its .yaml beside "
+                                 "it)")
+        check_grid_writable(Path(grid))
     if map_output is not None:
         if Path(map_output).suffix.lower() != ".vxm":
             raise ParameterError(f"{map_output}: --map writes a map snapshot, a .vxm (`voxtool export` makes .bt, .pgm, "
@@ -551,14 +573,17 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
                  threads: int = 0, progress: bool | None = None, dynamic: str | os.PathLike | None = None,
                  png: str | os.PathLike | None = None, view: str = "top",
                  truth_npy: str | os.PathLike | None = None, above_ground: tuple | None = None,
-                 map_output: str | os.PathLike | None = None) -> dict[str, Any]:
+                 map_output: str | os.PathLike | None = None, grid: str | os.PathLike | None = None,
+                 grid_band: tuple[float, float] = GRID_BAND) -> dict[str, Any]:
     """`voxtool clean`: judge every point of `source`; write the static points (`output`), the
     labels, the removed points (`dynamic`), a picture of what was removed (`png`: the removed
-    points in red over the kept ones, seen from `view`) and/or the map of the kept points
-    (`map_output`, a .vxm: static_map)."""
+    points in red over the kept ones, seen from `view`; `above_ground`: coloured by height over
+    the ground on that scale), the map of the kept points (`map_output`, a .vxm: static_map)
+    and/or a planner's grid of what stands `grid_band` metres over the ground (`grid`, a .pgm:
+    voxtool.ground.project_returns_above_ground of the kept points and their map)."""
     from voxtool.sources import resolve_origin
 
-    check_outputs(output, labels, dynamic, png, map_output)
+    check_outputs(output, labels, dynamic, png, map_output, grid)
     truth = None if truth_npy is None else read_truth_npy(truth_npy)  # a bad file fails before the work
     options = resolve_origin(source, options, params.resolution)
     cleaned = clean_stream(open_source(source, options), params, threads, progress)
@@ -567,15 +592,21 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
             raise ParameterError(f"{truth_npy}: {truth.shape[0]:,} labels for the {cleaned.dynamic.shape[0]:,} points "
                                  "judged (one per point, in scan order, as --labels writes them)")
         cleaned.figures["accuracy"] = accuracy_figures(cleaned.dynamic, truth)
+    if grid is not None and cleaned.figures["planar"]:  # refused before anything is written
+        raise ParameterError(f"{grid}: --grid: a 2D scanner's scans have no ground to measure height from; write "
+                             "--map and export it without --above-ground for their grid")
     t0 = time.perf_counter()
     if output is not None:
         write_cloud_points(output, cleaned.points, options.origin, params.resolution, keep=~cleaned.dynamic)
     if labels is not None:
         write_labels(labels, cleaned.dynamic)
+    if map_output is not None or grid is not None:
+        backend, report = static_map(cleaned, params, threads, progress)
+    if grid is not None:
+        cleaned.figures["grid"] = write_static_grid(Path(grid), cleaned, backend, grid_band, options.origin)
     if map_output is not None:
         from voxtool.api import backend_stats, save_counted, snapshot_info
 
-        backend, report = static_map(cleaned, params, threads, progress)
         info = {**snapshot_info(source, cleaned.stream.kind, options, report),
                 "cleaned": {"points_removed": int(cleaned.dynamic.sum()), "params": asdict(params)}}
         tree, _, _ = save_counted(map_output, backend, info)
@@ -597,6 +628,19 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
     figures["source"] = str(source)
     figures["origin"] = list(options.origin) if options.origin is not None else [0.0, 0.0, 0.0]
     return figures
+
+
+def write_static_grid(path: Path, cleaned: Cleaned, backend, band: tuple[float, float], origin=None) -> dict:
+    """`clean --grid`: the grid of what the kept points and their map (static_map) show standing
+    `band` metres over the ground, written as nav2's .pgm and .yaml."""
+    from voxtool.ground import project_returns_above_ground
+    from voxtool.io.export import write_grid_pgm
+
+    origins = np.array([shell.origin for shell in cleaned.shells], dtype=np.float64).reshape(-1, 3)
+    grid, figures = project_returns_above_ground(cleaned.points, cleaned.scan_starts, origins, backend, band,
+                                                 keep=~cleaned.dynamic, evidence=~cleaned.void)
+    return {"written": str(path), **write_grid_pgm(path, grid, origin), "above_ground": list(band),
+            "resolution": grid.resolution, **figures}
 
 
 def read_truth_npy(path: str | os.PathLike) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""The ground under a 3D map, and the 2D grid of what stands on it (`export --above-ground`).
+"""The ground under a 3D map, and the 2D grid of what stands on it (`export --above-ground`,
+`clean --grid`).
 
 Outdoors a grid cut at fixed heights is wrong wherever the ground slopes: the road uphill is an
 obstacle, the road downhill is out of range. What a navigation stack needs is height above the
@@ -400,6 +401,87 @@ def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float
     cells[keys[inside, 1] - y0, keys[inside, 0] - x0] = OCCUPIED
     origin = ((x0 - TREE_MAX_VAL) * resolution, (y0 - TREE_MAX_VAL) * resolution)
     return Grid2D(cells, resolution, origin, None)
+
+
+# Returns this close to their sensor (metres, level) are no obstacle by themselves: a car's own
+# body, its roof rack and mirrors (a KITTI car's: 1.3-2.1 m from its scanner, 0.5-0.9 m under
+# it), in a new voxel of the world each scan as the car drives. What stands there is an obstacle
+# where a scan from farther off hit it, or the map holds it occupied. docs/design/ground.md, section 4.
+NEAR_RETURN_M = 3.5
+
+
+def return_floor_log(sensor) -> float:
+    """The log-odds at or under which a voxel holding returns is no obstacle in the grid of the
+    returns: the map's clamp floor, plus half a miss (a voxel rays crossed so often after its
+    returns that it reached the floor: what a passing car leaves behind)."""
+    return float(sensor.clamp_min_log + 0.5 * abs(sensor.miss_log))
+
+
+def project_returns_above_ground(points: np.ndarray, scan_starts: np.ndarray, origins: np.ndarray, backend,
+                                 band: tuple[float, float], keep: np.ndarray | None = None,
+                                 evidence: np.ndarray | None = None, near_m: float = NEAR_RETURN_M,
+                                 params: GroundParams = MAP_GRID_GROUND) -> tuple[Grid2D, dict]:
+    """The 2D grid of what stands MIN..MAX metres above the ground under a scan sequence's points
+    (world frame, scan order; scan i is points[scan_starts[i]:scan_starts[i + 1]], its sensor at
+    origins[i]; `keep`: the points to use, if not all) and `backend`, the occupancy map of those
+    scans: a cell is occupied where a voxel in that band is occupied in the map, or holds a return
+    from at least `near_m` (level) off its sensor that the map has not cleared to its floor
+    (return_floor_log) and `evidence` (per point, if given: clean's "not void") allows; free where the ground under it is known and nothing in the band is,
+    unknown elsewhere. The ground is found as a map's (`params`), in the points' voxels, each
+    weighted by the scans that hit it.
+
+    Unlike a map's grid (project_above_ground), a voxel that more rays pass through than stop in
+    stays an obstacle: hedges, fences, railings, thin poles. Give it points without movers (clean's
+    kept points, their map): a passing car that the map has not cleared would mark its trail.
+    Returns (grid, figures: the cells the returns mark that the map alone leaves free)."""
+    from voxtool.keys import coords_to_keys, morton_encode
+
+    resolution = backend.params.resolution
+    pieces = []  # per scan: its voxels and whether a far return hit them
+    for i, (a, b) in enumerate(zip(scan_starts[:-1], scan_starts[1:])):
+        used = slice(None) if keep is None else keep[a:b]
+        scan = points[a:b][used]
+        if scan.shape[0] == 0:
+            continue
+        codes = voxel_codes(coords_to_keys(scan, resolution).astype(np.int64))
+        far = np.hypot(scan[:, 0] - origins[i][0], scan[:, 1] - origins[i][1]) >= near_m
+        if evidence is not None:
+            far &= evidence[a:b][used]
+        order = np.argsort(codes, kind="stable")
+        codes, far = codes[order], far[order]
+        starts = np.flatnonzero(np.r_[True, codes[1:] != codes[:-1]])
+        pieces.append((codes[starts], np.logical_or.reduceat(far, starts)))
+    if not pieces:
+        raise ParameterError("no points to find the ground under: the grid of the returns needs returns")
+    codes, far = (np.concatenate(p) for p in zip(*pieces))
+    del pieces
+    order = np.argsort(codes, kind="stable")
+    codes, far = codes[order], far[order]
+    starts = np.flatnonzero(np.r_[True, codes[1:] != codes[:-1]])
+    scans = np.diff(np.r_[starts, codes.shape[0]]).astype(np.float64)  # each scan gave a voxel one entry
+    far = np.logical_or.reduceat(far, starts)
+    codes = codes[starts]
+    ground = ground_from_codes(codes, scans, resolution, params)
+    returns = codes[far]
+    returns = np.stack([returns >> 32, (returns >> 16) & 0xFFFF, returns & 0xFFFF], 1)
+    held = backend.query(morton_encode(returns)) > np.float32(return_floor_log(backend.sensor))  # NaN: not held
+    occupied, _ = occupied_voxels(backend.leaves(), backend.sensor.threshold_log)
+
+    def mark(cells, keys):
+        column_x, column_y = keys[:, 0] - ground.x0, keys[:, 1] - ground.y0
+        inside = (column_x >= 0) & (column_x < cells.shape[1]) & (column_y >= 0) & (column_y < cells.shape[0])
+        keys, column_x, column_y = keys[inside], column_x[inside], column_y[inside]
+        above = (keys[:, 2] - TREE_MAX_VAL) * resolution - ground.under(keys[:, 0], keys[:, 1])
+        standing = (above >= band[0]) & (above <= band[1])  # NaN (no ground) is in no band
+        cells[column_y[standing], column_x[standing]] = OCCUPIED
+
+    cells = np.where(np.isnan(ground.height), UNKNOWN, FREE).astype(np.int8)
+    mark(cells, occupied)
+    by_map = cells == OCCUPIED
+    mark(cells, returns[held])
+    origin = ((ground.x0 - TREE_MAX_VAL) * resolution, (ground.y0 - TREE_MAX_VAL) * resolution)
+    return Grid2D(cells, resolution, origin, None), {"cells_by_returns": int((cells == OCCUPIED).sum() - by_map.sum()),
+                                                     "near_returns_m": near_m}
 
 
 def project_grid(leaves: Leaves, resolution: float, threshold_log: float, z_range: tuple[float, float] | None = None,

@@ -25,8 +25,15 @@ from voxtool.cli.common import (
               help="Write the static points (world frame, scan order) here, atomically.")
 @click.option("--map", "map_output", type=click.Path(path_type=Path), metavar="STATIC.vxm",
               help="Write the occupancy map of the static points here, atomically: every scan's rays cast to its kept "
-                   "points (octree, OctoMap's sensor model, at --resolution); the removed points mark nothing. A "
-                   "planner's grid without the movers: voxtool export STATIC.vxm -o grid.pgm --above-ground 0.3,2")
+                   "points (octree, OctoMap's sensor model, at --resolution); the removed points mark nothing. Its grid "
+                   "(voxtool export STATIC.vxm -o grid.pgm --above-ground 0.3,2) has no movers; --grid also marks "
+                   "the hedges and fences rays pass through.")
+@click.option("--grid", type=click.Path(path_type=Path), metavar="GRID.pgm",
+              help="Write a planner's grid of the static points here (nav2's .pgm and .yaml, atomically), a cell "
+                   "per voxel: occupied where something stands --above-ground (default 0.3,2 m) over the ground: a "
+                   "voxel the map of the kept points holds occupied, or one holding a kept return from 3.5 m or more "
+                   "off its sensor that the map has not cleared to its floor (hedges, fences, railings that rays "
+                   "pass through; a grid of the --map alone leaves them free). Free where the ground is known.")
 @click.option("--labels", type=click.Path(path_type=Path), metavar="LABELS.npy",
               help="Write one uint8 per point voxtool read (0 static, 1 dynamic), in scan order; points dropped "
                    "as non-finite or below --min-range have none.")
@@ -37,8 +44,8 @@ from voxtool.cli.common import (
 @click.option("--view", type=click.Choice(["top", "front", "side"]), default="top", show_default=True,
               help="--png: look from above, from the front (along +y) or the side (along -x).")
 @click.option("--above-ground", metavar="MIN,MAX",
-              help="--png (top view): colour the points by height above the ground found in the static points, "
-                   "on the scale MIN..MAX metres.")
+              help="--grid: what stands MIN..MAX metres over the ground is an obstacle (default 0.3,2). --png (top "
+                   "view): colour the points by height above the ground found in the static points, on that scale.")
 @click.option("--resolution", default=0.1, show_default=True, type=float, help="Voxel edge of the void map, metres.")
 @click.option("--sensor-noise", default=0.2, show_default=True, type=float,
               help="d_s: each ray gives no evidence of empty space over its last d_s metres (range noise).")
@@ -65,10 +72,10 @@ from voxtool.cli.common import (
 @click.option("--json", "as_json", is_flag=True, help="Print figures and timings as JSON on stdout.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr (default: when stderr is a terminal).")
 @handle_errors
-def clean(source, sample, output, map_output, labels, dynamic, png, view, above_ground, resolution, sensor_noise, pose_error,
+def clean(source, sample, output, map_output, grid, labels, dynamic, png, view, above_ground, resolution, sensor_noise, pose_error,
           group_share, max_range, ground_band, truth, origin, threads, as_json, progress, **kw):
     """Judge every point of SOURCE static or dynamic and write the static points (-o), their map
-    (--map) and/or the labels.
+    (--map), a planner's grid of them (--grid) and/or the labels.
 
     A point is dynamic when another scan saw through the space it occupies: its voxel is void
     (one scan's rays crossed it and every voxel within --pose-error of it), or it belongs to a
@@ -79,6 +86,7 @@ def clean(source, sample, output, map_output, labels, dynamic, png, view, above_
     \b
     Examples:
       voxtool clean scans/ -o static.pcd
+      voxtool clean drive.bag --grid grid.pgm --resolution 0.2        a planner's grid without the movers
       voxtool clean drive.bag --map static.vxm && voxtool export static.vxm -o grid.pgm --above-ground 0.3,2
       voxtool clean drive.mcap -o static.ply --labels labels.npy --json
       voxtool clean scans/ -o static.pcd --resolution 0.2 --sensor-noise 0.3
@@ -97,16 +105,19 @@ def clean(source, sample, output, map_output, labels, dynamic, png, view, above_
     from voxtool.ground import parse_above_ground
 
     band = parse_above_ground(above_ground)
-    if band is not None and png is None:
+    if band is not None and png is None and grid is None:
         from voxtool.errors import ParameterError
 
-        raise ParameterError("--above-ground colours the --png picture: give --png OUT.png")
-    if band is not None and view != "top":
+        raise ParameterError("--above-ground sets the --grid's band and colours the --png picture: give --grid GRID.pgm "
+                             "or --png OUT.png")
+    if band is not None and png is not None and view != "top":
         from voxtool.errors import ParameterError
 
         raise ParameterError("--above-ground colours a top view by height above the ground: not with --view")
+    from voxtool.clean import GRID_BAND
+
     result = clean_source(source, options, params, output, labels, threads, progress, dynamic, png, view, truth_npy,
-                          band, map_output)
+                          band if png is not None else None, map_output, grid, band or GRID_BAND)
     t = result["timings_s"]
     removed = result["points_removed"]
     share = removed / max(result["points_in"], 1)
@@ -136,5 +147,11 @@ def clean(source, sample, output, map_output, labels, dynamic, png, view, above_
     if "map" in result:
         rows.append(("static map", f"{result['map']['occupied_voxels']:,} occupied, {result['map']['free_voxels']:,} free "
                                    f"voxels at {resolution} m, the removed points left out"))
-    written = [p for p in (output, map_output, labels, dynamic, png) if p is not None]
+    if "grid" in result:
+        g = result["grid"]
+        rows.append(("grid", f"{g['occupied_cells']:,} occupied ({g['cells_by_returns']:,} by returns the map leaves "
+                             f"under its threshold), {g['free_cells']:,} free, {g['unknown_cells']:,} unknown cells of "
+                             f"{g['resolution']:g} m: what stands {g['above_ground'][0]:g}-{g['above_ground'][1]:g} m "
+                             "over the ground"))
+    written = [p for p in (output, map_output, grid, labels, dynamic, png) if p is not None]
     emit(result, as_json, rows, written=written if len(written) > 1 else written[0])

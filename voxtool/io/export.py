@@ -186,23 +186,37 @@ def write_pgm(path: Path, leaves: Leaves, resolution: float, threshold_log: floa
     """A 2D occupancy grid for nav2's map_server: the image and its YAML beside it (voxtool.grid).
     The YAML's origin is in the scans' frame (a map built about --origin is shifted back, as the
     .mcap's OccupancyGrid is), and says so; --z-range stays in the map's local heights."""
-    from voxtool.atomic import check_writable
-    from voxtool.grid import map_yaml, pgm_bytes
     from voxtool.ground import project_grid
 
     if include_free:
         raise ParameterError(f"{path}: a grid always holds free, occupied and unknown cells; --free is for .ply/.pcd")
-    yaml_path = grid_yaml_path(path)
-    check_writable(yaml_path)
+    check_grid_writable(path)
     grid = project_grid(leaves, resolution, threshold_log, z_range, above_ground, obstacle_log)
+    return {**write_grid_pgm(path, grid, origin), "z_range": list(z_range) if z_range else None,
+            "above_ground": list(above_ground) if above_ground else None}
+
+
+def check_grid_writable(path: Path) -> None:
+    """Refuse a .pgm grid, or the YAML beside it, that cannot be written, before any work."""
+    from voxtool.atomic import check_writable
+
+    check_writable(path)
+    check_writable(grid_yaml_path(path))
+
+
+def write_grid_pgm(path: Path, grid, origin=None) -> dict:
+    """A Grid2D as nav2's map_server reads it: the .pgm and the YAML beside it, each atomically;
+    the YAML's origin shifted back by a map's --origin into the scans' frame."""
+    from voxtool.grid import map_yaml, pgm_bytes
+
+    yaml_path = grid_yaml_path(path)
     with atomic_writer(path) as handle:
         handle.write(pgm_bytes(grid))
     with atomic_writer(yaml_path) as handle:
         handle.write(map_yaml(grid, path.name, origin).encode())
     shift = (0.0, 0.0) if origin is None else (float(origin[0]), float(origin[1]))
     return {"format": "pgm", "yaml": str(yaml_path), "origin": [grid.origin[0] + shift[0], grid.origin[1] + shift[1]],
-            "z_range": list(z_range) if z_range else None,
-            "above_ground": list(above_ground) if above_ground else None, **grid.counts()}
+            **grid.counts()}
 
 
 # each writes the file and returns what it wrote (format, counts)
