@@ -539,6 +539,17 @@ def test_clean_grid_marks_a_hedge_rays_pass_through_and_no_mover_nor_its_own_car
     lane = (origins[0, 0], 6.0, -3.6, -2.2)  # its lane, up to where it was in the last scans: no later one saw through
     for box in (path, lane):
         assert not np.any(cells(grid, origin, *box) == 100) and (cells(grid, origin, *box) == 0).mean() >= 0.95
+    # the same grid as a .mcap's OccupancyGrid (read by rosbags), stamped with the last scan's time
+    from test_viewer_mcap import read_ros2
+
+    code, _, err = cli("clean", tmp_path / "scans", "--grid", tmp_path / "g.mcap", "--resolution", "0.2", "--no-progress")
+    assert code == 0, err
+    msgtype, _, message = read_ros2(tmp_path / "g.mcap")["/projected_map"]
+    assert msgtype == "nav_msgs/msg/OccupancyGrid" and message.header.frame_id == "map"
+    assert message.header.stamp.sec == 1 and message.header.stamp.nanosec == 300_000_000  # scan 13 of 10 a second
+    data = np.asarray(message.data, dtype=np.int8).reshape(message.info.height, message.info.width)
+    assert np.array_equal(data, grid.astype(np.int8))
+    assert (message.info.origin.position.x, message.info.origin.position.y) == pytest.approx(tuple(origin[:2]))
 
 
 def test_clean_grid_refusals_are_one_line_and_write_nothing(tmp_path):

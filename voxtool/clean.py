@@ -507,10 +507,14 @@ def check_outputs(output: str | os.PathLike | None, labels: str | os.PathLike | 
     if grid is not None:
         from voxtool.io.export import check_grid_writable
 
-        if Path(grid).suffix.lower() != ".pgm":
-            raise ParameterError(f"{grid}: --grid writes a planner's grid as nav2 reads it, a .pgm (and its .yaml beside "
-                                 "it)")
-        check_grid_writable(Path(grid))
+        suffix = Path(grid).suffix.lower()
+        if suffix not in (".pgm", ".mcap"):
+            raise ParameterError(f"{grid}: --grid writes a planner's grid as a .pgm (and its .yaml beside it, as nav2 "
+                                 "reads it) or a .mcap (a nav_msgs/OccupancyGrid)")
+        if suffix == ".pgm":
+            check_grid_writable(Path(grid))
+        else:
+            check_writable(grid)
     if map_output is not None:
         if Path(map_output).suffix.lower() != ".vxm":
             raise ParameterError(f"{map_output}: --map writes a map snapshot, a .vxm (`voxtool export` makes .bt, .pgm, "
@@ -632,15 +636,20 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
 
 def write_static_grid(path: Path, cleaned: Cleaned, backend, band: tuple[float, float], origin=None) -> dict:
     """`clean --grid`: the grid of what the kept points and their map (static_map) show standing
-    `band` metres over the ground, written as nav2's .pgm and .yaml."""
+    `band` metres over the ground, written as nav2's .pgm and .yaml, or as a .mcap's
+    OccupancyGrid stamped with the last scan's time."""
     from voxtool.ground import project_returns_above_ground
     from voxtool.io.export import write_grid_pgm
+    from voxtool.io.viewer_mcap import write_grid_mcap
 
     origins = np.array([shell.origin for shell in cleaned.shells], dtype=np.float64).reshape(-1, 3)
     grid, figures = project_returns_above_ground(cleaned.points, cleaned.scan_starts, origins, backend, band,
                                                  keep=~cleaned.dynamic, evidence=~cleaned.void)
-    return {"written": str(path), **write_grid_pgm(path, grid, origin), "above_ground": list(band),
-            "resolution": grid.resolution, **figures}
+    if path.suffix.lower() == ".mcap":
+        written = write_grid_mcap(path, grid, cleaned.shells[-1].stamp_ns if cleaned.shells else 0, origin)
+    else:
+        written = write_grid_pgm(path, grid, origin)
+    return {"written": str(path), **written, "above_ground": list(band), "resolution": grid.resolution, **figures}
 
 
 def read_truth_npy(path: str | os.PathLike) -> np.ndarray:

@@ -28,8 +28,9 @@ from voxtool.cli.common import (
                    "points (octree, OctoMap's sensor model, at --resolution); the removed points mark nothing. Its grid "
                    "(voxtool export STATIC.vxm -o grid.pgm --above-ground 0.3,2) has no movers; --grid also marks "
                    "the hedges and fences rays pass through.")
-@click.option("--grid", type=click.Path(path_type=Path), metavar="GRID.pgm",
-              help="Write a planner's grid of the static points here (nav2's .pgm and .yaml, atomically), a cell "
+@click.option("--grid", type=click.Path(path_type=Path), metavar="GRID.pgm|.mcap",
+              help="Write a planner's grid of the static points here, atomically (nav2's .pgm and .yaml, or a .mcap "
+                   "holding a nav_msgs/OccupancyGrid on /projected_map, stamped with the last scan), a cell "
                    "per voxel: occupied where something stands --above-ground (default 0.3,2 m) over the ground: a "
                    "voxel the map of the kept points holds occupied, or one holding a kept return from 3.5 m or more "
                    "off its sensor that the map has not cleared to its floor (hedges, fences, railings that rays "

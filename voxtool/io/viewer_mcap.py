@@ -164,3 +164,18 @@ def write_map_mcap(path: Path, leaves: Leaves, resolution: float, threshold_log:
             + ([GRID_TOPIC] if grid else []),
             "cubes": {e.id: len(e.cubes) for e in update.entities}, "octomap_bytes": len(octomap.data),
             "grid": grid.counts() if grid else None, "stamp_ns": stamp_ns}
+
+
+def write_grid_mcap(path: Path, grid, stamp_ns: int = 0, origin=None) -> dict:
+    """A Grid2D alone as one nav_msgs/OccupancyGrid on GRID_TOPIC (frame `map`, the scans' frame:
+    moved by a map's local `origin`), at `stamp_ns`; written atomically (`clean --grid`)."""
+    from voxtool.io.ros2 import Ros2McapWriter
+
+    shift = (0.0, 0.0, 0.0) if origin is None else tuple(float(v) for v in origin)
+    with atomic_writer(path) as f:
+        writer = Ros2McapWriter(f)
+        writer.write(writer.channel(GRID_TOPIC, "nav_msgs/msg/OccupancyGrid"), grid_message(grid, stamp_ns, shift),
+                     stamp_ns)
+        writer.finish()
+    return {"format": "mcap", "topics": [GRID_TOPIC], "origin": [grid.origin[0] + shift[0], grid.origin[1] + shift[1]],
+            "stamp_ns": stamp_ns, **grid.counts()}
