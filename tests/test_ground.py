@@ -553,9 +553,17 @@ def test_clean_grid_marks_a_hedge_rays_pass_through_and_no_mover_nor_its_own_car
 
 
 def test_clean_grid_refusals_are_one_line_and_write_nothing(tmp_path):
+    """A grid of another kind, a band with no grid nor picture, and a level 2D scanner's scans
+    (no ground to stand on): one line, exit 2, and not even the -o asked beside it written."""
+    from voxtool.synthetic import Box, Lidar, Scene, write_pcd_scans
+
     _drive_past_a_hedge(tmp_path / "scans", n_scans=2)
-    for args, says in ((["--grid", tmp_path / "g.png"], "a .pgm"),
-                       (["-o", tmp_path / "g.pcd", "--above-ground", "0.3,2"], "give --grid GRID.pgm or --png")):
-        code, _, err = cli("clean", tmp_path / "scans", *args)
+    room = [Box((-5.0, 4.0, 0.0), (5.0, 5.0, 3.0)), Box((-5.0, -5.0, 0.0), (5.0, -4.0, 3.0))]
+    write_pcd_scans(Scene(room, Lidar(beams=1, min_elevation_deg=0.0, max_elevation_deg=0.0), n_scans=3), tmp_path / "2d")
+    for scans, args, says in (("scans", ["--grid", tmp_path / "g.png"], "a .pgm"),
+                              ("scans", ["-o", tmp_path / "g.pcd", "--above-ground", "0.3,2"],
+                               "give --grid GRID.pgm or --png"),
+                              ("2d", ["-o", tmp_path / "g.pcd", "--grid", tmp_path / "g.pgm"], "no ground")):
+        code, _, err = cli("clean", tmp_path / scans, *args, "--no-progress")
         assert code == 2 and says in err and len(err.strip().splitlines()) == 1, err
         assert not any(tmp_path.glob("g.*"))
