@@ -161,16 +161,15 @@ def cleaned_grids(source: Path, resolution: float, origins: np.ndarray, poses: s
                   choice: dict | None = None):
     """(the path-free share of the --above-ground grid of `clean --map`'s map, the grid `clean
     --grid` writes) of the source, cleaned once at the same resolution."""
-    from voxtool.clean import CleanParams, clean_stream, static_map
-    from voxtool.ground import project_above_ground, project_returns_above_ground
+    from voxtool.clean import CleanParams, clean_stream, static_grid, static_map
+    from voxtool.ground import project_above_ground
     from voxtool.sources import SourceOptions, open_source
 
     params = CleanParams(resolution=resolution)
     cleaned = clean_stream(open_source(source, SourceOptions(poses=poses)), params, progress=False)
     backend, _ = static_map(cleaned, params)
     exported = project_above_ground(backend.leaves(), resolution, backend.sensor.threshold_log, BAND, **(choice or {}))
-    grid, _ = project_returns_above_ground(cleaned.points, cleaned.scan_starts, origins, backend, BAND,
-                                           keep=~cleaned.dynamic, evidence=~cleaned.void)
+    grid, _ = static_grid(cleaned, backend, BAND)
     return _share(exported, path_cells(exported, origins), 0), grid
 
 

@@ -567,3 +567,26 @@ def test_clean_grid_refusals_are_one_line_and_write_nothing(tmp_path):
         code, _, err = cli("clean", tmp_path / scans, *args, "--no-progress")
         assert code == 2 and says in err and len(err.strip().splitlines()) == 1, err
         assert not any(tmp_path.glob("g.*"))
+
+
+def test_a_grid_too_large_to_make_leaves_no_file(tmp_path):
+    """A return 4 km off in x and y: the grid at 0.2 m would have 20,000 x 20,000 cells. `clean
+    --grid` says so on one line (exit 2) after judging, and writes nothing, not even the -o that
+    would have been written first."""
+    from types import SimpleNamespace
+
+    from voxtool.synthetic import write_pcd_scans
+
+    xs, ys = (a.ravel() for a in np.meshgrid(np.arange(-5.0, 5.0, 0.2), np.arange(-5.0, 5.0, 0.2)))
+    road = np.c_[xs, ys, np.zeros(xs.shape)]
+
+    def scans():
+        for i in range(2):
+            points = np.concatenate([road, [(4000.0, 4000.0, 0.5)]]).astype(np.float32)
+            yield points, np.array([0.1 * i, 0.0, 1.7]), 0.0, np.zeros(len(points), bool)
+
+    write_pcd_scans(SimpleNamespace(scans=scans, rate_hz=10.0), tmp_path / "far")
+    code, _, err = cli("clean", tmp_path / "far", "-o", tmp_path / "g.pcd", "--grid", tmp_path / "g.pgm",
+                       "--resolution", "0.2", "--no-progress")
+    assert code == 2 and "g.pgm: --grid: " in err and "columns of 0.2 m" in err and len(err.strip().splitlines()) == 1
+    assert not any(tmp_path.glob("g.*"))

@@ -599,15 +599,22 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
     if grid is not None and cleaned.figures["planar"]:  # refused before anything is written
         raise ParameterError(f"{grid}: --grid: a 2D scanner's scans have no ground to measure height from; write "
                              "--map and export it without --above-ground for their grid")
+    if map_output is not None or grid is not None:
+        backend, report = static_map(cleaned, params, threads, progress)
+    if grid is not None:  # made before anything is written: a grid that cannot be made leaves no file
+        try:
+            planner_grid, grid_figures = static_grid(cleaned, backend, grid_band)
+        except ParameterError as err:
+            raise ParameterError(f"{grid}: --grid: {err}") from None
     t0 = time.perf_counter()
     if output is not None:
         write_cloud_points(output, cleaned.points, options.origin, params.resolution, keep=~cleaned.dynamic)
     if labels is not None:
         write_labels(labels, cleaned.dynamic)
-    if map_output is not None or grid is not None:
-        backend, report = static_map(cleaned, params, threads, progress)
     if grid is not None:
-        cleaned.figures["grid"] = write_static_grid(Path(grid), cleaned, backend, grid_band, options.origin)
+        stamp_ns = cleaned.shells[-1].stamp_ns if cleaned.shells else 0
+        cleaned.figures["grid"] = write_static_grid(Path(grid), planner_grid, grid_figures, grid_band, stamp_ns,
+                                                    options.origin)
     if map_output is not None:
         from voxtool.api import backend_stats, save_counted, snapshot_info
 
@@ -634,19 +641,24 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
     return figures
 
 
-def write_static_grid(path: Path, cleaned: Cleaned, backend, band: tuple[float, float], origin=None) -> dict:
+def static_grid(cleaned: Cleaned, backend, band: tuple[float, float]):
     """`clean --grid`: the grid of what the kept points and their map (static_map) show standing
-    `band` metres over the ground, written as nav2's .pgm and .yaml, or as a .mcap's
-    OccupancyGrid stamped with the last scan's time."""
+    `band` metres over the ground (voxtool.ground.project_returns_above_ground); (grid, figures)."""
     from voxtool.ground import project_returns_above_ground
+
+    origins = np.array([shell.origin for shell in cleaned.shells], dtype=np.float64).reshape(-1, 3)
+    return project_returns_above_ground(cleaned.points, cleaned.scan_starts, origins, backend, band,
+                                        keep=~cleaned.dynamic, evidence=~cleaned.void)
+
+
+def write_static_grid(path: Path, grid, figures: dict, band: tuple[float, float], stamp_ns: int = 0,
+                      origin=None) -> dict:
+    """static_grid's grid as nav2's .pgm and .yaml, or as a .mcap's OccupancyGrid at `stamp_ns`."""
     from voxtool.io.export import write_grid_pgm
     from voxtool.io.viewer_mcap import write_grid_mcap
 
-    origins = np.array([shell.origin for shell in cleaned.shells], dtype=np.float64).reshape(-1, 3)
-    grid, figures = project_returns_above_ground(cleaned.points, cleaned.scan_starts, origins, backend, band,
-                                                 keep=~cleaned.dynamic, evidence=~cleaned.void)
     if path.suffix.lower() == ".mcap":
-        written = write_grid_mcap(path, grid, cleaned.shells[-1].stamp_ns if cleaned.shells else 0, origin)
+        written = write_grid_mcap(path, grid, stamp_ns, origin)
     else:
         written = write_grid_pgm(path, grid, origin)
     return {"written": str(path), **written, "above_ground": list(band), "resolution": grid.resolution, **figures}

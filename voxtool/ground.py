@@ -315,7 +315,9 @@ def ground_from_codes(codes: np.ndarray, hits: np.ndarray, resolution: float, pa
     x0, y0 = int(kx.min()) // column, int(ky.min()) // column
     cols, rows = int(kx.max()) // column - x0 + 1, int(ky.max()) // column - y0 + 1
     if rows * cols > 1 << 28:
-        raise ParameterError(f"the ground grid would have {cols} x {rows} columns; --crop the map first")
+        raise ParameterError(f"the ground grid would have {cols:,} x {rows:,} columns of {resolution * column:g} m, over "
+                             f"{1 << 28:,}: export a --crop of the map, or clean --grid fewer scans or a coarser "
+                             "--resolution")
     nowhere = np.zeros((rows, cols), np.int32)
     floor, which = _supported_floor(codes, column, x0, y0, rows, cols, params.support, nowhere)
     lowest_voxel, lowest_which = _supported_floor(codes, column, x0, y0, rows, cols, 0, nowhere)
