@@ -583,8 +583,8 @@ def clean_source(source: str | os.PathLike, options: SourceOptions, params: Clea
     labels, the removed points (`dynamic`), a picture of what was removed (`png`: the removed
     points in red over the kept ones, seen from `view`; `above_ground`: coloured by height over
     the ground on that scale), the map of the kept points (`map_output`, a .vxm: static_map)
-    and/or a planner's grid of what stands `grid_band` metres over the ground (`grid`, a .pgm:
-    voxtool.ground.project_returns_above_ground of the kept points and their map)."""
+    and/or a planner's grid of what stands `grid_band` metres over the ground (`grid`, a .pgm or
+    .mcap: static_grid)."""
     from voxtool.sources import resolve_origin
 
     check_outputs(output, labels, dynamic, png, map_output, grid)

@@ -395,14 +395,21 @@ def project_above_ground(leaves: Leaves, resolution: float, threshold_log: float
     rows, cols = ground.height.shape
     r0, c0 = ground.y0 - y0, ground.x0 - x0  # the ground's columns lie within the map's
     cells[r0:r0 + rows, c0:c0 + cols] = np.where(np.isnan(ground.height), UNKNOWN, FREE)
+    mark_standing(cells, x0, y0, keys, ground, band)
+    origin = ((x0 - TREE_MAX_VAL) * resolution, (y0 - TREE_MAX_VAL) * resolution)
+    return Grid2D(cells, resolution, origin, None)
+
+
+def mark_standing(cells: np.ndarray, x0: int, y0: int, keys: np.ndarray, ground: Ground,
+                  band: tuple[float, float]) -> None:
+    """Mark OCCUPIED the cells (row key y - y0, column key x - x0) of the voxels (finest keys,
+    N x 3) that stand MIN..MAX metres over the ground under them."""
     # a voxel's height above the ground: its bottom face above the floor voxel's (the ground's height),
     # so whole voxel layers over the floor; a road that straddles a voxel boundary fills the floor
     # voxel and the one above it, and that one, at a layer, is still the road and not 0.3 m above it
-    above = (keys[:, 2] - TREE_MAX_VAL) * resolution - ground.under(keys[:, 0], keys[:, 1])
-    inside = (above >= band[0]) & (above <= band[1])  # NaN (no ground) is in no band
+    above = (keys[:, 2] - TREE_MAX_VAL) * ground.resolution - ground.under(keys[:, 0], keys[:, 1])
+    inside = (above >= band[0]) & (above <= band[1])  # NaN (no ground, or outside it) is in no band
     cells[keys[inside, 1] - y0, keys[inside, 0] - x0] = OCCUPIED
-    origin = ((x0 - TREE_MAX_VAL) * resolution, (y0 - TREE_MAX_VAL) * resolution)
-    return Grid2D(cells, resolution, origin, None)
 
 
 # Returns this close to their sensor (metres, level) are no obstacle by themselves: a car's own
@@ -428,9 +435,9 @@ def project_returns_above_ground(points: np.ndarray, scan_starts: np.ndarray, or
     origins[i]; `keep`: the points to use, if not all) and `backend`, the occupancy map of those
     scans: a cell is occupied where a voxel in that band is occupied in the map, or holds a return
     from at least `near_m` (level) off its sensor that the map has not cleared to its floor
-    (return_floor_log) and `evidence` (per point, if given: clean's "not void") allows; free where the ground under it is known and nothing in the band is,
-    unknown elsewhere. The ground is found as a map's (`params`), in the points' voxels, each
-    weighted by the scans that hit it.
+    (return_floor_log) and `evidence` (per point, if given: clean's "not void") allows; free
+    where the ground under it is known and nothing in the band is, unknown elsewhere. The ground
+    is found as a map's (`params`), in the points' voxels, each weighted by the scans that hit it.
 
     Unlike a map's grid (project_above_ground), a voxel that more rays pass through than stop in
     stays an obstacle: hedges, fences, railings, thin poles. Give it points without movers (clean's
@@ -469,20 +476,12 @@ def project_returns_above_ground(points: np.ndarray, scan_starts: np.ndarray, or
     held = backend.query(morton_encode(returns)) > np.float32(return_floor_log(backend.sensor))  # NaN: not held
     occupied, _ = occupied_voxels(backend.leaves(), backend.sensor.threshold_log)
 
-    def mark(cells, keys):
-        column_x, column_y = keys[:, 0] - ground.x0, keys[:, 1] - ground.y0
-        inside = (column_x >= 0) & (column_x < cells.shape[1]) & (column_y >= 0) & (column_y < cells.shape[0])
-        keys, column_x, column_y = keys[inside], column_x[inside], column_y[inside]
-        above = (keys[:, 2] - TREE_MAX_VAL) * resolution - ground.under(keys[:, 0], keys[:, 1])
-        standing = (above >= band[0]) & (above <= band[1])  # NaN (no ground) is in no band
-        cells[column_y[standing], column_x[standing]] = OCCUPIED
-
-    cells = np.where(np.isnan(ground.height), UNKNOWN, FREE).astype(np.int8)
-    mark(cells, occupied)
-    by_map = cells == OCCUPIED
-    mark(cells, returns[held])
+    cells = np.where(np.isnan(ground.height), UNKNOWN, FREE).astype(np.int8)  # the ground's columns
+    mark_standing(cells, ground.x0, ground.y0, occupied, ground, band)
+    by_map = int((cells == OCCUPIED).sum())
+    mark_standing(cells, ground.x0, ground.y0, returns[held], ground, band)
     origin = ((ground.x0 - TREE_MAX_VAL) * resolution, (ground.y0 - TREE_MAX_VAL) * resolution)
-    return Grid2D(cells, resolution, origin, None), {"cells_by_returns": int((cells == OCCUPIED).sum() - by_map.sum()),
+    return Grid2D(cells, resolution, origin, None), {"cells_by_returns": int((cells == OCCUPIED).sum()) - by_map,
                                                      "near_returns_m": near_m}
 
 
