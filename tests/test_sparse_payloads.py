@@ -125,7 +125,8 @@ def test_the_running_latest_state_equals_a_sort_of_every_change(packets, backgro
 def test_pruning_the_sorted_voxels_equals_the_octrees_pruned_leaves(seed, n, levels):
     """prune_into, in place as fusion's snapshot uses it (no tree built), gives the leaves OctreeMap
     gives for the same finest voxels: whole blocks of 2^levels voxels of one value merge up, mixed
-    ones do not."""
+    ones do not; and so does fusion.prune_in_parts, which prunes parts of them on threads at once."""
+    from voxtool.codec.fusion import prune_in_parts
     from voxtool.config import MapParams, SensorModel
     from voxtool.kernels.sort import prune_into
     from voxtool.keys import morton_encode
@@ -150,6 +151,11 @@ def test_pruning_the_sorted_voxels_equals_the_octrees_pruned_leaves(seed, n, lev
     assert np.array_equal(got_codes, reference.codes) and np.array_equal(got_depths, reference.depths)
     assert np.array_equal(got_values, reference.values)
     assert levels == 0 or (reference.depths < 16).any()  # the blocks did merge: pruning was exercised
+    for threads in (2, 3, 5):  # in parts at once, as the save prunes them: the same leaves
+        got_codes, got_values, got_depths = codes.copy(), values.copy(), np.empty(codes.shape[0], np.uint8)
+        top = prune_in_parts(got_codes, got_values, got_depths, threads)
+        assert np.array_equal(got_codes[:top], reference.codes) and np.array_equal(got_depths[:top], reference.depths)
+        assert np.array_equal(got_values[:top], reference.values)
 
 
 @settings(max_examples=150)

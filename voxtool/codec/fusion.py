@@ -288,6 +288,34 @@ def _fused_codes(p: Packet, extrinsics: dict) -> np.ndarray:
 SAVE_PIECE = 1 << 20  # leaves a snapshot piece holds
 
 
+def prune_in_parts(codes: np.ndarray, values: np.ndarray, depths: np.ndarray, threads: int) -> int:
+    """kernels.sort.prune_into of sorted unique finest-level voxels, in place, in `threads` parts
+    at once; returns how many leaves (the first ones of the arrays). The parts are split at
+    multiples of a node span over an eighth of the voxels: a node across a split covers more
+    voxels than there are, so it is never a leaf, and each part's leaves are the whole's."""
+    from voxtool.kernels.sort import move_leaves, prune_into
+    from voxtool.parallel import run_parts
+
+    n = codes.shape[0]
+    span = 1
+    while 8 * span <= n:
+        span *= 8
+    cuts = {0, n} | {int(np.searchsorted(codes, int(codes[n * k // threads]) // span * span))
+                     for k in range(1, threads) if n}
+    parts = [(a, b) for a, b in zip(sorted(cuts)[:-1], sorted(cuts)[1:]) if b > a]
+
+    def prune(part):
+        a, b = part
+        return prune_into(codes[a:b], values[a:b], codes[a:b], depths[a:b], values[a:b])
+
+    top = 0
+    for (a, _), leaves in zip(parts, run_parts(threads, prune, parts)):
+        if a > top:
+            move_leaves(codes, depths, values, a, top, leaves)
+        top += leaves
+    return top
+
+
 def save_state_map(path, result: FusionResult, info: dict) -> None:
     """Write the fused map as an octree snapshot. It consumes the result's voxels: they are
     pruned in place into the snapshot's leaves (the fused set is the largest thing in memory;
@@ -296,8 +324,8 @@ def save_state_map(path, result: FusionResult, info: dict) -> None:
     from voxtool.heap import give_back_freed_memory
     from voxtool.io.mapfile import save_map
     from voxtool.io.snapshot import ChunkedArrays
-    from voxtool.kernels.sort import prune_into
     from voxtool.maps.octree import OctreeMap
+    from voxtool.parallel import usable_cores
 
     sensor = SensorModel()
     m = OctreeMap(MapParams(resolution=result.resolution or 0.1), sensor)  # its parameters; the leaves are below
@@ -307,7 +335,7 @@ def save_state_map(path, result: FusionResult, info: dict) -> None:
     depths = np.empty(codes.shape[0], np.uint8)
     # the octree's pruned leaves, straight from the sorted voxels (pruned by state: each state is
     # one log-odds value) and no tree built to be saved; the log-odds made for the leaves alone
-    top = prune_into(codes, states, codes, depths, states)
+    top = prune_in_parts(codes, states, depths, usable_cores())
     codes, depths, states = codes[:top], depths[:top], states[:top]
     occupied, free = np.float32(sensor.clamp_max_log), np.float32(sensor.clamp_min_log)
 

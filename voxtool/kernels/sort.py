@@ -128,6 +128,16 @@ def prune_into(codes, values, out_codes, out_depths, out_values):
 
 
 @njit(cache=True, nogil=True)
+def move_leaves(codes, depths, values, src, dst, n):
+    """Move n leaves from place src down to place dst (dst <= src), in place: the leaves pruned
+    in a part of the arrays joined to those of the parts before."""
+    for i in range(n):
+        codes[dst + i] = codes[src + i]
+        depths[dst + i] = depths[src + i]
+        values[dst + i] = values[src + i]
+
+
+@njit(cache=True, nogil=True)
 def merge_latest_into(codes, states, n, codes_b, states_b):
     """The union of a sorted, unique change set (the first n entries of `codes`/`states`) and
     another (b), b's state where both hold a voxel, written in place: the buffers hold
