@@ -320,6 +320,10 @@ def test_a_static_world_loses_no_point(tmp_path):
     text = cli("clean", tmp_path / "scans", "--truth", tmp_path / "truth.npy", "--labels", tmp_path / "l.npy",
                "--no-progress")[1]
     assert "DA n/a of 0 dynamic removed, AA n/a (no moving point in the truth" in text
+    np.save(tmp_path / "short.npy", truth[:-5])  # a label short: one line, nothing written
+    code, _, err = cli("clean", tmp_path / "scans", "-o", tmp_path / "t.pcd", "--truth", tmp_path / "short.npy",
+                       "--no-progress")
+    assert code == 2 and err.count("\n") == 1 and "labels for the" in err and not (tmp_path / "t.pcd").exists()
 
 
 def test_the_street_scores_high(tmp_path):
