@@ -446,7 +446,7 @@ def project_returns_above_ground(points: np.ndarray, scan_starts: np.ndarray, or
     from voxtool.keys import coords_to_keys, morton_encode
 
     resolution = backend.params.resolution
-    pieces = []  # per scan: its voxels and whether a far return hit them
+    scan_voxels, far_voxels = [], []  # per scan: its distinct voxels, and those a far return hit
     for i, (a, b) in enumerate(zip(scan_starts[:-1], scan_starts[1:])):
         used = slice(None) if keep is None else keep[a:b]
         scan = points[a:b][used]
@@ -456,22 +456,13 @@ def project_returns_above_ground(points: np.ndarray, scan_starts: np.ndarray, or
         far = np.hypot(scan[:, 0] - origins[i][0], scan[:, 1] - origins[i][1]) >= near_m
         if evidence is not None:
             far &= evidence[a:b][used]
-        order = np.argsort(codes, kind="stable")
-        codes, far = codes[order], far[order]
-        starts = np.flatnonzero(np.r_[True, codes[1:] != codes[:-1]])
-        pieces.append((codes[starts], np.logical_or.reduceat(far, starts)))
-    if not pieces:
+        scan_voxels.append(np.unique(codes))
+        far_voxels.append(np.unique(codes[far]))
+    if not scan_voxels:
         raise ParameterError("no points to find the ground under: the grid of the returns needs returns")
-    codes, far = (np.concatenate(p) for p in zip(*pieces))
-    del pieces
-    order = np.argsort(codes, kind="stable")
-    codes, far = codes[order], far[order]
-    starts = np.flatnonzero(np.r_[True, codes[1:] != codes[:-1]])
-    scans = np.diff(np.r_[starts, codes.shape[0]]).astype(np.float64)  # each scan gave a voxel one entry
-    far = np.logical_or.reduceat(far, starts)
-    codes = codes[starts]
-    ground = ground_from_codes(codes, scans, resolution, params)
-    returns = codes[far]
+    ground = ground_from_codes(*unique_codes(np.concatenate(scan_voxels)), resolution, params)  # hits: scans
+    del scan_voxels
+    returns = np.unique(np.concatenate(far_voxels))
     returns = np.stack([returns >> 32, (returns >> 16) & 0xFFFF, returns & 0xFFFF], 1)
     held = backend.query(morton_encode(returns)) > np.float32(return_floor_log(backend.sensor))  # NaN: not held
     occupied, _ = occupied_voxels(backend.leaves(), backend.sensor.threshold_log)

@@ -300,9 +300,9 @@ def prune_in_parts(codes: np.ndarray, values: np.ndarray, depths: np.ndarray, th
     span = 1
     while 8 * span <= n:
         span *= 8
-    cuts = {0, n} | {int(np.searchsorted(codes, int(codes[n * k // threads]) // span * span))
-                     for k in range(1, threads) if n}
-    parts = [(a, b) for a, b in zip(sorted(cuts)[:-1], sorted(cuts)[1:]) if b > a]
+    cuts = sorted({0, n} | {int(np.searchsorted(codes, int(codes[n * k // threads]) // span * span))
+                            for k in range(1, threads) if n})
+    parts = [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
 
     def prune(part):
         a, b = part
